@@ -1,0 +1,244 @@
+"""Runtime configuration: a TOML file loaded into typed dataclasses, then command-line overrides.
+
+Every key is declared here with its type and its valid range; an unknown section or key, a
+wrong type or an out-of-range value raises ``UsageError`` naming the key (``[loop] rate_hz``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10 (JetPack 6) path
+    import tomli as tomllib
+
+from jetbot_rt.errors import UsageError
+
+MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")
+LAYOUTS = ("NHWC", "NCHW")
+COLOR_ORDERS = ("RGB", "BGR")
+PIXEL_RANGES = ("0-255", "0-1", "-1-1")
+
+
+def _check(predicate: Callable[[Any], bool], expected: str) -> dict[str, Any]:
+    return {"check": predicate, "expected": expected}
+
+
+def _positive() -> dict[str, Any]:
+    return _check(lambda v: v > 0 and math.isfinite(v), "a number > 0")
+
+
+def _one_of(choices: tuple[str, ...]) -> dict[str, Any]:
+    return _check(lambda v: v in choices, "one of " + ", ".join(repr(c) for c in choices))
+
+
+def _camera_source_ok(value: str) -> bool:
+    return value == "csi" or (value.startswith("usb:") and len(value) > 4) or (
+        value.startswith("gst:") and len(value.strip()) > 4
+    )
+
+
+def _pair(predicate: Callable[[float], bool], expected: str) -> dict[str, Any]:
+    return _check(lambda v: len(v) == 2 and all(predicate(x) for x in v), expected)
+
+
+@dataclass
+class LoopConfig:
+    rate_hz: float = field(default=30.0, metadata=_positive())
+    """Control rate; ticks sit on absolute monotonic deadlines 1/rate_hz apart."""
+    max_frame_age: float = field(default=0.15, metadata=_positive())
+    """Seconds; a frame older than this at the start of a tick is refused (a fault)."""
+    watchdog_timeout: float | None = field(default=None, metadata=_positive())
+    """Seconds without a completed tick before the watchdog latches the safe stop.
+    Default: three periods."""
+    warmup_runs: int = field(default=3, metadata=_check(lambda v: 1 <= v <= 100, "1..100"))
+    """Timed inferences before driving; if the fastest is slower than a period, refuse the run."""
+
+    @property
+    def period(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @property
+    def watchdog_timeout_s(self) -> float:
+        return self.watchdog_timeout if self.watchdog_timeout is not None else 3.0 * self.period
+
+
+@dataclass
+class PolicyConfig:
+    path: str | None = None
+    """ONNX file; default: the policy bundled in the package."""
+    layout: str | None = field(default=None, metadata=_one_of(LAYOUTS))
+    """Override the input layout read from the model."""
+    color_order: str | None = field(default=None, metadata=_one_of(COLOR_ORDERS))
+    """Override the channel order the model expects (metadata, else RGB)."""
+    pixel_range: str | None = field(default=None, metadata=_one_of(PIXEL_RANGES))
+    """Override the pixel range the model expects (metadata, else 0-255)."""
+    providers: list[str] | None = None
+    """onnxruntime execution providers in order; default TensorRT, CUDA, CPU (those present)."""
+
+
+@dataclass
+class ActionsConfig:
+    max_speed: float | None = field(
+        default=None, metadata=_check(lambda v: 0 < v <= 1, "a number in (0, 1]")
+    )
+    """Duty at |mu| = 1. Default: the model's metadata, else 0.1."""
+    trim: list[float] = field(
+        default_factory=lambda: [1.0, 1.0],
+        metadata=_pair(lambda x: 0 <= x <= 2, "two numbers in [0, 2]"),
+    )
+    """[left, right] gain per wheel, to even out a weaker motor."""
+    sign: list[int] = field(
+        default_factory=lambda: [1, 1],
+        metadata=_pair(lambda x: x in (1, -1), "two values, each 1 or -1"),
+    )
+    """[left, right]: -1 for a motor wired the wrong way round."""
+
+
+@dataclass
+class MotorsConfig:
+    layout: str = field(default="waveshare", metadata=_one_of(MOTOR_LAYOUTS))
+    i2c_bus: int = field(default=1, metadata=_check(lambda v: 0 <= v <= 255, "0..255"))
+    address: int = field(default=0x60, metadata=_check(lambda v: 0x03 <= v <= 0x77, "0x03..0x77"))
+    left_motor: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
+    """adafruit_motorhat only: which of MotorKit's motor1..motor4 is the left wheel."""
+    right_motor: int = field(default=2, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
+    pwm_frequency: float = field(
+        default=1600.0, metadata=_check(lambda v: 24 <= v <= 1526, "24..1526 Hz")
+    )
+    i2c_retries: int = field(default=3, metadata=_check(lambda v: 0 <= v <= 20, "0..20"))
+    """Extra attempts after a transient I2C OSError before it counts as a fault."""
+
+
+@dataclass
+class CameraConfig:
+    source: str = field(
+        default="csi",
+        metadata=_check(_camera_source_ok, '"csi", "usb:/dev/videoN" or "gst:<pipeline>"'),
+    )
+    sensor_id: int = field(default=0, metadata=_check(lambda v: 0 <= v <= 7, "0..7"))
+    capture_width: int = field(default=1280, metadata=_check(lambda v: 16 <= v <= 8192, "16..8192"))
+    capture_height: int = field(default=720, metadata=_check(lambda v: 16 <= v <= 8192, "16..8192"))
+    fps: float = field(default=30.0, metadata=_positive())
+    flip_method: int = field(default=0, metadata=_check(lambda v: 0 <= v <= 7, "0..7"))
+    start_timeout: float = field(default=10.0, metadata=_positive())
+    """Seconds to wait for the first frame before the camera counts as not started."""
+
+
+@dataclass
+class TelemetryConfig:
+    path: str | None = None
+    """JSON Lines file, one record per tick plus events; none by default."""
+
+
+@dataclass
+class SimConfig:
+    physics_hz: float = field(default=240.0, metadata=_positive())
+    """Physics sub-step rate; each control tick advances the world by one period."""
+    motor_gain: float = field(default=20.0, metadata=_positive())
+    """Wheel angular velocity (rad/s) at duty 1.0."""
+    motor_tau: float = field(default=0.05, metadata=_check(lambda v: v >= 0, "a number >= 0"))
+    """First-order lag time constant of the motor (s); 0 for none."""
+    seed: int = 0
+    camera_stall_after: float | None = field(default=None, metadata=_positive())
+    """Fault injection: the camera delivers no new frame after this many simulated seconds."""
+    blackout: list[float] | None = field(
+        default=None,
+        metadata=_check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] seconds"),
+    )
+    """Fault injection: frames are black between these simulated times (a covered lens)."""
+
+
+@dataclass
+class Config:
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    actions: ActionsConfig = field(default_factory=ActionsConfig)
+    motors: MotorsConfig = field(default_factory=MotorsConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+def _type_ok(value: Any, annotation: str) -> Any:
+    """Coerce a TOML value to the field's declared type, or raise TypeError."""
+    base = annotation.replace(" | None", "")
+    if base == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TypeError("a number")
+        return float(value)
+    if base == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypeError("an integer")
+        return value
+    if base == "str":
+        if not isinstance(value, str):
+            raise TypeError("a string")
+        return value
+    if base.startswith("list["):
+        item = base[5:-1]
+        if not isinstance(value, list):
+            raise TypeError(f"a list of {item}")
+        return [_type_ok(v, item) for v in value]
+    raise TypeError(base)  # pragma: no cover - only declared types reach here
+
+
+def set_value(section_obj: Any, section: str, key: str, value: Any) -> None:
+    """Set one key with type and range checks; errors name ``[section] key``."""
+    fields = {f.name: f for f in dataclasses.fields(section_obj)}
+    if key not in fields:
+        known = ", ".join(sorted(fields))
+        raise UsageError(f"unknown key [{section}] {key} (known keys: {known})")
+    spec = fields[key]
+    if value is None and "None" in str(spec.type):
+        setattr(section_obj, key, None)
+        return
+    try:
+        coerced = _type_ok(value, str(spec.type))
+    except TypeError as exc:
+        raise UsageError(f"[{section}] {key} must be {exc}, got {value!r}") from None
+    meta = spec.metadata
+    if "check" in meta and not meta["check"](coerced):
+        raise UsageError(f"[{section}] {key} must be {meta['expected']}, got {value!r}")
+    setattr(section_obj, key, coerced)
+
+
+def from_dict(data: dict[str, Any]) -> Config:
+    config = Config()
+    sections = {f.name for f in dataclasses.fields(config)}
+    for section, values in data.items():
+        if section not in sections:
+            raise UsageError(
+                f"unknown section [{section}] (known sections: {', '.join(sorted(sections))})"
+            )
+        if not isinstance(values, dict):
+            raise UsageError(f"[{section}] must be a table")
+        for key, value in values.items():
+            set_value(getattr(config, section), section, key, value)
+    return config
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read a TOML file (or return the defaults when ``path`` is None)."""
+    if path is None:
+        return Config()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise UsageError(f"cannot read config {path}: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise UsageError(f"config {path} is not valid TOML: {exc}") from None
+    try:
+        return from_dict(data)
+    except UsageError as exc:
+        raise UsageError(f"config {path}: {exc}") from None

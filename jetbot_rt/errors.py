@@ -1,0 +1,14 @@
+"""The two kinds of failure the command line distinguishes."""
+
+
+class UsageError(Exception):
+    """Bad input: flags, config, model file. One line to the user, exit code 2, motors untouched."""
+
+
+class Fault(Exception):
+    """Something went wrong while driving. Latches the safe stop; the run ends with exit code 3."""
+
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+EXIT_SAFE_STOP = 3

@@ -1,0 +1,66 @@
+"""The two device interfaces every backend implements, and the bundle the loop drives."""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera image: ``image`` is HxWx3 uint8 in RGB order; ``t_capture`` is on
+    ``time.monotonic()``'s clock (for the sim, the wall time at which it was rendered)."""
+
+    image: np.ndarray
+    t_capture: float
+    index: int = 0
+
+
+class Camera(abc.ABC):
+    """A camera that keeps only its newest frame."""
+
+    @abc.abstractmethod
+    def start(self) -> None:
+        """Start capturing; raise ``UsageError`` with the device's own message if it cannot."""
+
+    @abc.abstractmethod
+    def read(self) -> Frame | None:
+        """The newest frame, without waiting; None if none has arrived yet."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop capturing and release everything (child processes included). Idempotent."""
+
+
+class Drive(abc.ABC):
+    """Two wheels. Duties are in [-1, 1]; positive drives the robot forward."""
+
+    @abc.abstractmethod
+    def write(self, left: float, right: float) -> None:
+        """Apply the duties. Raise ``Fault`` if the hardware cannot be reached."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Turn both motors off by the most direct means the device has."""
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release the device. Called after the final stop."""
+
+
+@dataclass
+class Backend:
+    """What ``make_backend`` returns: a camera, a drive, and an optional per-tick hook.
+
+    ``advance(dt)`` runs after the drive write of each tick: the sim steps its world by one
+    control period and renders the next frame; real hardware has no hook.
+    """
+
+    camera: Camera
+    drive: Drive
+    advance: Callable[[float], None] | None = None
+    close: Callable[[], None] = field(default=lambda: None)
+    telemetry: Callable[[], dict[str, object]] | None = None
+    """Extra per-tick telemetry fields (the sim adds the robot's ``pose``)."""

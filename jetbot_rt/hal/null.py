@@ -1,0 +1,50 @@
+"""A camera that always has a fresh constant frame and a drive that only remembers the last
+write. Used by the benchmarks to measure the loop itself, and by tests of the loop."""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from jetbot_rt.hal.base import Backend, Camera, Drive, Frame
+
+if TYPE_CHECKING:
+    from jetbot_rt.config import Config
+    from jetbot_rt.hal.registry import BackendOptions
+
+
+class NullCamera(Camera):
+    def __init__(self, width: int = 224, height: int = 224) -> None:
+        self._image = np.full((height, width, 3), 128, dtype=np.uint8)
+        self._count = 0
+
+    def start(self) -> None:
+        pass
+
+    def read(self) -> Frame:
+        self._count += 1
+        return Frame(self._image, time.monotonic(), self._count)
+
+    def stop(self) -> None:
+        pass
+
+
+class NullDrive(Drive):
+    def __init__(self) -> None:
+        self.last: tuple[float, float] = (0.0, 0.0)
+        self.writes = 0
+
+    def write(self, left: float, right: float) -> None:
+        self.last = (left, right)
+        self.writes += 1
+
+    def stop(self) -> None:
+        self.last = (0.0, 0.0)
+        self.writes += 1
+
+
+def build_backend(config: Config, options: BackendOptions) -> Backend:
+    width, height = options.frame_size
+    return Backend(camera=NullCamera(width, height), drive=NullDrive())

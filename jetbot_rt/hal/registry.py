@@ -1,0 +1,39 @@
+"""Backends by name. Each backend module registers a factory; heavy modules are imported
+only when their backend is asked for, so ``--backend real`` never imports pybullet."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from jetbot_rt.errors import UsageError
+
+if TYPE_CHECKING:
+    from jetbot_rt.config import Config
+    from jetbot_rt.hal.base import Backend
+
+BackendFactory = Callable[["Config", "BackendOptions"], "Backend"]
+
+# name -> module that defines ``build_backend(config, options)``
+BACKEND_MODULES: dict[str, str] = {
+    "sim": "jetbot_rt.sim.backend",
+    "real": "jetbot_rt.hal.real",
+    "null": "jetbot_rt.hal.null",
+}
+
+
+class BackendOptions:
+    """Run-time facts a backend may need beyond the config file."""
+
+    def __init__(self, frame_size: tuple[int, int] = (224, 224), gui: bool = False) -> None:
+        self.frame_size = frame_size  # (width, height) the policy wants
+        self.gui = gui
+
+
+def make_backend(name: str, config: Config, options: BackendOptions | None = None) -> Backend:
+    if name not in BACKEND_MODULES:
+        known = ", ".join(sorted(BACKEND_MODULES))
+        raise UsageError(f"unknown backend {name!r} (known: {known})")
+    module = importlib.import_module(BACKEND_MODULES[name])
+    return module.build_backend(config, options or BackendOptions())
