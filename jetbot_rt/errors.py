@@ -12,3 +12,9 @@ class Fault(Exception):
 EXIT_OK = 0
 EXIT_USAGE = 2
 EXIT_SAFE_STOP = 3
+
+
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (libraries often append pages of context)."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__

@@ -1,0 +1,67 @@
+"""``jetbot-rt``: run, stop, check, install-service.
+
+Each subcommand lives in its own module, imported only when used, so ``jetbot-rt stop`` (what
+systemd runs after a crash) loads neither onnxruntime nor the camera code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from jetbot_rt import __version__
+from jetbot_rt.errors import EXIT_USAGE, UsageError
+
+# subcommand -> (module with add_arguments/run, help)
+COMMANDS = {
+    "run": ("jetbot_rt.runtime", "drive the robot (or the simulation) from an ONNX policy"),
+    "stop": ("jetbot_rt.stop", "stop a running jetbot-rt and turn the motor outputs off"),
+    "check": ("jetbot_rt.check", "self-test: motor board, camera, policy, providers"),
+    "install-service": ("jetbot_rt.service", "install the systemd unit and a default config"),
+}
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line and exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
+    parser = OneLineParser(prog="jetbot-rt", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"jetbot-rt {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+    modules = {}
+    for name, (module_name, help_text) in COMMANDS.items():
+        command_parser = sub.add_parser(name, help=help_text, description=help_text)
+        modules[name] = module_name
+        command_parser.set_defaults(_module=module_name)
+    return parser, modules
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser, modules = build_parser()
+    # Only the chosen subcommand's module is imported to add its arguments.
+    command = next((a for a in argv if not a.startswith("-")), None)
+    if command in modules:
+        module = importlib.import_module(modules[command])
+        subparsers = next(
+            a for a in parser._actions if isinstance(a, argparse._SubParsersAction)
+        )
+        module.add_arguments(subparsers.choices[command])
+    args = parser.parse_args(argv)
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args))
+    except UsageError as exc:
+        print(f"jetbot-rt {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,218 @@
+"""An ONNX image policy: reads what the model expects and prepares camera frames to match.
+
+The model's input name, layout, size and dtype come from the graph; colour order, pixel range
+and ``max_speed`` from the metadata our exporter writes (``jetbot_rt.*`` keys). Models without
+metadata get the rl_games/Isaac Lab defaults: NHWC, RGB, float32, values 0..255.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from jetbot_rt.config import LAYOUTS, PolicyConfig
+from jetbot_rt.errors import Fault, UsageError, first_line
+
+META_PREFIX = "jetbot_rt."
+PROVIDER_PREFERENCE = (
+    "TensorrtExecutionProvider",
+    "CUDAExecutionProvider",
+    "CPUExecutionProvider",
+)
+_DTYPES = {
+    "tensor(float)": np.float32,
+    "tensor(float16)": np.float16,
+    "tensor(uint8)": np.uint8,
+}
+
+
+def bundled_policy_path() -> Path:
+    return Path(__file__).resolve().parent / "policies" / "forward.onnx"
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """How a frame must look when it reaches the model."""
+
+    name: str
+    layout: str  # NHWC or NCHW
+    width: int
+    height: int
+    dtype: Any
+    color_order: str  # RGB or BGR
+    pixel_range: str  # 0-255, 0-1 or -1-1
+
+
+def _dim(value: Any) -> int | None:
+    return value if isinstance(value, int) and value > 0 else None
+
+
+def _infer_layout(shape: list[Any]) -> str | None:
+    if _dim(shape[3]) == 3 and _dim(shape[1]) != 3:
+        return "NHWC"
+    if _dim(shape[1]) == 3 and _dim(shape[3]) != 3:
+        return "NCHW"
+    if _dim(shape[3]) == 3:  # 3x?x3: ambiguous, NHWC is what rl_games exported
+        return "NHWC"
+    return None
+
+
+class OnnxPolicy:
+    """``infer(image)`` maps one HxWx3 uint8 RGB frame to ``mu``: two floats, ``[left, right]``."""
+
+    def __init__(self, session: Any, spec: InputSpec, action_output: str, path: Path,
+                 metadata: dict[str, str]) -> None:
+        self.session = session
+        self.spec = spec
+        self.action_output = action_output
+        self.path = path
+        self.metadata = metadata
+
+    @property
+    def max_speed(self) -> float | None:
+        try:
+            return float(self.metadata[META_PREFIX + "max_speed"])
+        except (KeyError, ValueError):
+            return None
+
+    @property
+    def providers(self) -> list[str]:
+        return list(self.session.get_providers())
+
+    @classmethod
+    def load(cls, path: str | Path, config: PolicyConfig | None = None) -> OnnxPolicy:
+        """Open and validate the model; every problem is a ``UsageError`` naming the file."""
+        import onnxruntime as ort
+
+        config = config or PolicyConfig()
+        path = Path(path)
+        if not path.is_file():
+            raise UsageError(f"policy {path}: no such file")
+        available = ort.get_available_providers()
+        wanted = config.providers or list(PROVIDER_PREFERENCE)
+        providers = [p for p in wanted if p in available] or ["CPUExecutionProvider"]
+        options = ort.SessionOptions()
+        options.log_severity_level = 4  # errors reach the user through our own message
+        try:
+            session = ort.InferenceSession(str(path), options, providers=providers)
+        except Exception as exc:  # onnxruntime raises several unrelated types for bad files
+            raise UsageError(
+                f"policy {path}: not a loadable ONNX model ({first_line(exc)})"
+            ) from None
+        metadata = dict(session.get_modelmeta().custom_metadata_map)
+        spec = cls._input_spec(session, path, config, metadata)
+        action_output = cls._action_output(session, path)
+        return cls(session, spec, action_output, path, metadata)
+
+    @staticmethod
+    def _input_spec(session: Any, path: Path, config: PolicyConfig,
+                    metadata: dict[str, str]) -> InputSpec:
+        inputs = session.get_inputs()
+        if len(inputs) != 1:
+            names = ", ".join(i.name for i in inputs)
+            raise UsageError(
+                f"policy {path}: expected one image input, found {len(inputs)} ({names})"
+            )
+        model_input = inputs[0]
+        shape = list(model_input.shape)
+        if len(shape) != 4:
+            raise UsageError(
+                f"policy {path}: expected an image input [N,H,W,3] or [N,3,H,W], "
+                f"found {model_input.name} with shape {shape}"
+            )
+        if model_input.type not in _DTYPES:
+            raise UsageError(
+                f"policy {path}: expected input dtype float32, float16 or uint8, "
+                f"found {model_input.type}"
+            )
+        layout = config.layout or metadata.get(META_PREFIX + "layout") or _infer_layout(shape)
+        if layout not in LAYOUTS:
+            raise UsageError(
+                f"policy {path}: cannot tell the image layout of input shape {shape} "
+                "(set [policy] layout)"
+            )
+        channels, height, width = (
+            (shape[3], shape[1], shape[2]) if layout == "NHWC" else (shape[1], shape[2], shape[3])
+        )
+        if _dim(channels) != 3:
+            raise UsageError(
+                f"policy {path}: expected 3 colour channels in {layout} input, found shape {shape}"
+            )
+        if _dim(height) is None or _dim(width) is None:
+            raise UsageError(f"policy {path}: input {model_input.name} has no fixed size: {shape}")
+        color = config.color_order or metadata.get(META_PREFIX + "color_order", "RGB")
+        pixel_range = config.pixel_range or metadata.get(META_PREFIX + "pixel_range", "0-255")
+        if color not in ("RGB", "BGR") or pixel_range not in ("0-255", "0-1", "-1-1"):
+            raise UsageError(
+                f"policy {path}: unsupported metadata color_order={color!r} "
+                f"pixel_range={pixel_range!r}"
+            )
+        return InputSpec(model_input.name, layout, int(width), int(height),
+                         _DTYPES[model_input.type], color, pixel_range)
+
+    @staticmethod
+    def _action_output(session: Any, path: Path) -> str:
+        outputs = session.get_outputs()
+        chosen = next((o for o in outputs if o.name == "mu"), outputs[0])
+        known = [d for d in chosen.shape if isinstance(d, int)]
+        count = int(np.prod(known[1:])) if len(chosen.shape) >= 2 else (known[0] if known else 2)
+        if chosen.type not in ("tensor(float)", "tensor(float16)", "tensor(double)"):
+            raise UsageError(f"policy {path}: expected float actions in output {chosen.name}, "
+                             f"found {chosen.type}")
+        if len(known) == len(chosen.shape) and count != 2:
+            raise UsageError(f"policy {path}: expected 2 actions [left, right] in output "
+                             f"{chosen.name}, found shape {chosen.shape}")
+        return chosen.name
+
+    def prepare(self, image: np.ndarray) -> np.ndarray:
+        """HxWx3 uint8 RGB -> the batch of one the model takes."""
+        spec = self.spec
+        if image.ndim != 3 or image.shape[2] != 3:
+            raise Fault(f"camera frame has shape {image.shape}, expected HxWx3")
+        if image.shape[0] != spec.height or image.shape[1] != spec.width:
+            image = cv2.resize(image, (spec.width, spec.height), interpolation=cv2.INTER_AREA)
+        if spec.color_order == "BGR":
+            image = image[:, :, ::-1]
+        if spec.dtype == np.uint8:
+            tensor = np.ascontiguousarray(image)
+        else:
+            tensor = image.astype(np.float32)
+            if spec.pixel_range == "0-1":
+                tensor *= 1.0 / 255.0
+            elif spec.pixel_range == "-1-1":
+                tensor = tensor * (2.0 / 255.0) - 1.0
+            tensor = tensor.astype(spec.dtype, copy=False)
+        if spec.layout == "NCHW":
+            tensor = tensor.transpose(2, 0, 1)
+        return np.ascontiguousarray(tensor[None])
+
+    def infer(self, image: np.ndarray) -> np.ndarray:
+        """One forward pass; returns ``mu`` as float64 ``[left, right]``."""
+        feed = {self.spec.name: self.prepare(image)}
+        try:
+            (output,) = self.session.run([self.action_output], feed)
+        except Exception as exc:  # onnxruntime's errors while running are faults, not usage
+            raise Fault(f"policy inference failed: {first_line(exc)}") from None
+        mu = np.asarray(output, dtype=np.float64).reshape(-1)
+        if mu.size != 2:
+            raise Fault(f"policy gave {mu.size} action values, expected 2")
+        return mu
+
+    def describe(self) -> dict[str, Any]:
+        spec = self.spec
+        return {
+            "path": str(self.path),
+            "input": spec.name,
+            "layout": spec.layout,
+            "size": [spec.width, spec.height],
+            "dtype": np.dtype(spec.dtype).name,
+            "color_order": spec.color_order,
+            "pixel_range": spec.pixel_range,
+            "action_output": self.action_output,
+            "max_speed": self.max_speed,
+            "providers": self.providers,
+        }

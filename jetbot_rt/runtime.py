@@ -1,0 +1,306 @@
+"""``jetbot-rt run``: assemble config, policy, backend, latch, watchdog and loop; end safely.
+
+Threads: the control loop runs in its own thread so that the main thread stays free for
+signals and can end the process even when a tick hangs inside native code (onnxruntime, a
+driver). The watchdog has its own thread. Every way out writes zero to the drive last.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from jetbot_rt.actions import ActionPipeline, resolve_max_speed
+from jetbot_rt.config import Config, load_config, set_value
+from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, Fault, UsageError, first_line
+from jetbot_rt.hal import BackendOptions, make_backend
+from jetbot_rt.loop import ControlLoop, percentile
+from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
+from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.telemetry import Telemetry
+
+STOP_SIGNALS = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--backend", required=True, help="sim or real")
+    parser.add_argument("--policy", help="ONNX policy (default: the bundled forward policy)")
+    parser.add_argument("--config", help="TOML config file")
+    parser.add_argument("--rate", type=float, help="control rate in Hz (default 30)")
+    parser.add_argument("--max-speed", type=float, help="duty at |mu| = 1, in (0, 1]")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--telemetry", help="write JSON Lines telemetry to this file")
+    parser.add_argument("--gui", action="store_true", help="open PyBullet's window (sim only)")
+
+
+def build_config(args: argparse.Namespace) -> Config:
+    config = load_config(args.config)
+    overrides = [
+        ("loop", "rate_hz", args.rate, "--rate"),
+        ("actions", "max_speed", args.max_speed, "--max-speed"),
+        ("telemetry", "path", args.telemetry, "--telemetry"),
+        ("policy", "path", args.policy, "--policy"),
+    ]
+    for section, key, value, flag in overrides:
+        if value is None:
+            continue
+        try:
+            set_value(getattr(config, section), section, key, value)
+        except UsageError as exc:
+            raise UsageError(f"{flag}: {exc}") from None
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError(f"--duration must be > 0, got {args.duration:g}")
+    if args.gui and args.backend != "sim":
+        raise UsageError("--gui needs --backend sim")
+    return config
+
+
+@dataclass
+class RunResult:
+    exit_code: int
+    reason: str
+
+
+class Runtime:
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.config = build_config(args)
+        self.telemetry = Telemetry(self.config.telemetry.path)
+        self.latch = SafeStopLatch()
+        self.backend: Any = None
+        self.drive: GuardedDrive | None = None
+        self.loop: ControlLoop | None = None
+        self.watchdog: Watchdog | None = None
+        self.control: Any = None
+        self.notifier: Any = None
+        self.latch.on_trip(self._log_trip)
+
+    def _log_trip(self, reason: str) -> None:
+        self.telemetry.event("safe_stop", reason=reason, fault=self.latch.fault, cmd=[0.0, 0.0])
+
+    def _policy_path(self) -> Path:
+        if self.config.policy.path:
+            return Path(self.config.policy.path)
+        bundled = bundled_policy_path()
+        if not bundled.is_file():
+            raise UsageError("no bundled policy in this installation; pass --policy FILE.onnx")
+        return bundled
+
+    def prepare(self) -> OnnxPolicy:
+        """Everything that can fail on bad input, before any motor is touched."""
+        policy = OnnxPolicy.load(self._policy_path(), self.config.policy)
+        spec = policy.spec
+        self.actions = ActionPipeline(
+            max_speed=resolve_max_speed(self.config.actions.max_speed, policy.max_speed),
+            trim=(self.config.actions.trim[0], self.config.actions.trim[1]),
+            sign=(self.config.actions.sign[0], self.config.actions.sign[1]),
+        )
+        options = BackendOptions(frame_size=(spec.width, spec.height), gui=self.args.gui)
+        self.backend = make_backend(self.args.backend, self.config, options)
+        self.drive = GuardedDrive(self.backend.drive, self.latch)
+        return policy
+
+    def warm_up(self, policy: OnnxPolicy) -> None:
+        """Start the camera, run the policy on a real frame, refuse a policy that is too slow."""
+        camera = self.backend.camera
+        camera.start()
+        frame = camera.read()
+        if frame is None:
+            raise UsageError("camera started but delivered no frame")
+        period = self.config.loop.period
+        limit = max(5.0, 20 * period)
+        timings: list[float] = []
+        error: list[BaseException] = []
+
+        def run_warmup() -> None:
+            try:
+                policy.infer(frame.image)  # first run allocates; not timed
+                for _ in range(self.config.loop.warmup_runs):
+                    t0 = time.perf_counter()
+                    policy.infer(frame.image)
+                    timings.append(time.perf_counter() - t0)
+            except BaseException as exc:
+                error.append(exc)
+
+        worker = threading.Thread(target=run_warmup, name="jetbot-rt-warmup", daemon=True)
+        worker.start()
+        worker.join(limit)
+        if worker.is_alive():
+            raise UsageError(
+                f"policy {policy.path}: warm-up inference did not finish within {limit:.1f} s"
+            )
+        if error:
+            raise UsageError(f"policy {policy.path}: warm-up inference failed: "
+                             f"{first_line(error[0])}")
+        fastest = min(timings)
+        self.warmup_ms = fastest * 1e3
+        if fastest > period:
+            raise UsageError(
+                f"policy {policy.path}: too slow for {self.config.loop.rate_hz:g} Hz: "
+                f"{fastest * 1e3:.1f} ms per inference > period {period * 1e3:.1f} ms "
+                "(lower --rate or use a smaller model)"
+            )
+
+    def _install_signal_handlers(self) -> None:
+        def handler(signum: int, _frame: Any) -> None:
+            self.latch.trip(f"{STOP_SIGNALS.get(signum, signum)} received", fault=False)
+
+        for signum in STOP_SIGNALS:
+            signal.signal(signum, handler)
+
+    def _status(self) -> str:
+        stats = self.loop.stats if self.loop else None
+        if stats is None or stats.ticks == 0:
+            return "starting"
+        elapsed = time.monotonic() - (stats.t_start or time.monotonic())
+        rate = stats.ticks / elapsed if elapsed > 0 else 0.0
+        return f"driving: {rate:.1f} Hz, {stats.ticks} ticks, {stats.overruns} overruns"
+
+    def run(self) -> RunResult:
+        from jetbot_rt.control import ControlServer
+        from jetbot_rt.notify import Notifier
+
+        self._install_signal_handlers()
+        self.notifier = Notifier.from_env()
+        policy = self.prepare()
+        assert self.drive is not None
+        try:
+            self.drive.stop()  # start from a known state: whatever the board held is cleared
+            self.control = ControlServer(
+                on_stop=lambda reason: self.latch.trip(reason, fault=False)
+            )
+            self.control.start()
+            self.warm_up(policy)
+            if self.latch.tripped:  # a signal during start-up
+                return self._finish()
+            return self._drive(policy)
+        except BaseException:
+            self._final_stop()
+            raise
+
+    def _drive(self, policy: OnnxPolicy) -> RunResult:
+        loop_cfg = self.config.loop
+        self.watchdog = Watchdog(self.latch, loop_cfg.watchdog_timeout_s)
+        self.loop = ControlLoop(
+            camera=self.backend.camera,
+            policy=policy,
+            actions=self.actions,
+            drive=self.drive,
+            latch=self.latch,
+            watchdog=self.watchdog,
+            telemetry=self.telemetry,
+            period=loop_cfg.period,
+            max_frame_age=loop_cfg.max_frame_age,
+            advance=self.backend.advance,
+            extra_telemetry=self.backend.telemetry,
+            on_tick_done=lambda now: self.notifier.tick(now, self._status),
+        )
+        self.telemetry.event(
+            "start", backend=self.args.backend, policy=policy.describe(),
+            rate_hz=loop_cfg.rate_hz, max_speed=self.actions.max_speed,
+            watchdog_timeout_s=loop_cfg.watchdog_timeout_s, warmup_ms=round(self.warmup_ms, 3),
+        )
+        self.notifier.ready(f"ready: policy warmed up ({self.warmup_ms:.1f} ms), driving")
+        loop_thread = threading.Thread(
+            target=self.loop.run, args=(self.args.duration,), name="jetbot-rt-loop", daemon=True
+        )
+        self.watchdog.start()
+        loop_thread.start()
+        while loop_thread.is_alive() and not self.latch.tripped:
+            loop_thread.join(0.05)
+        # The latch is tripped (or the loop ended by itself); give a tick in flight a moment.
+        loop_thread.join(max(1.0, 3 * loop_cfg.period))
+        if loop_thread.is_alive():
+            self.latch.trip("control loop hung", fault=True)
+            result = self._finish(hung=True)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            # The loop thread is stuck in native code and cannot be joined; the motors are at
+            # zero and everything is flushed, so leave without waiting for it.
+            os._exit(result.exit_code)
+        return self._finish()
+
+    def _final_stop(self) -> None:
+        if self.watchdog is not None:
+            self.watchdog.close()
+        if self.drive is not None:
+            self.drive.stop()
+        for closer in (
+            getattr(self.backend, "camera", None) and self.backend.camera.stop,
+            self.control and self.control.close,
+            self.backend and self.backend.close,
+        ):
+            if closer:
+                try:
+                    closer()
+                except Exception as exc:  # cleanup must go on; say what failed
+                    print(f"jetbot-rt: cleanup: {first_line(exc)}", file=sys.stderr)
+        if self.drive is not None:
+            self.drive.stop()  # the last write of the process is zero
+
+    def _finish(self, hung: bool = False) -> RunResult:
+        if not self.latch.tripped:
+            self.latch.trip("loop ended", fault=False)
+        self._final_stop()
+        fault = self.latch.fault
+        exit_code = EXIT_SAFE_STOP if fault else EXIT_OK
+        reason = self.latch.reason or "stopped"
+        stats = self.loop.stats if self.loop else None
+        summary: dict[str, Any] = {"reason": reason, "exit_code": exit_code, "cmd": [0.0, 0.0]}
+        if stats is not None:
+            summary.update(
+                ticks=stats.ticks,
+                achieved_hz=round(stats.achieved_hz, 3),
+                tick_ms_p50=round(percentile(stats.tick_ms, 50), 3),
+                tick_ms_p99=round(percentile(stats.tick_ms, 99), 3),
+                overruns=stats.overruns,
+            )
+        if self.drive is not None and self.drive.stop_errors:
+            summary["stop_errors"] = self.drive.stop_errors
+        if self.telemetry.lost:
+            summary["telemetry_lost"] = self.telemetry.lost
+        if self.notifier is not None:
+            self.notifier.stopping(f"stopping: {reason}")
+        self.telemetry.event("end", **summary)
+        self.telemetry.close()
+        print_summary(summary, self.config.loop.rate_hz)
+        return RunResult(exit_code, reason)
+
+
+def print_summary(summary: dict[str, Any], rate_hz: float) -> None:
+    lines = ["jetbot-rt run summary"]
+    if "ticks" in summary:
+        lines += [
+            f"  ticks        {summary['ticks']}",
+            f"  rate         {summary['achieved_hz']:.2f} Hz (target {rate_hz:g} Hz)",
+            f"  tick time    p50 {summary['tick_ms_p50']:.2f} ms, "
+            f"p99 {summary['tick_ms_p99']:.2f} ms",
+            f"  overruns     {summary['overruns']}",
+        ]
+    if summary.get("telemetry_lost"):
+        lines.append(f"  telemetry    {summary['telemetry_lost']} records lost")
+    for error in summary.get("stop_errors", []):
+        lines.append(f"  stop error   {error}")
+    lines.append(f"  stopped      {summary['reason']}")
+    lines.append(f"  exit code    {summary['exit_code']}")
+    print("\n".join(lines), flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    runtime = Runtime(args)
+    try:
+        return runtime.run().exit_code
+    except Fault as fault:
+        runtime.latch.trip(str(fault))
+        return runtime._finish().exit_code
+    except UsageError as exc:
+        runtime.telemetry.event("end", reason=str(exc), exit_code=2, cmd=[0.0, 0.0])
+        runtime.telemetry.close()
+        raise

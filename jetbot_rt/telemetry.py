@@ -1,0 +1,65 @@
+"""JSON Lines telemetry: one record per tick, plus event records carrying an ``event`` key.
+
+A telemetry file that can no longer be written (disk full, directory removed) does not stop
+the robot: telemetry is for people, the safety chain does not depend on it. The writer reports
+the failure once on stderr, stops writing and keeps the count of lost records for the summary.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import IO, Any
+
+from jetbot_rt.errors import UsageError
+
+
+class Telemetry:
+    def __init__(self, path: str | Path | None) -> None:
+        self.path = Path(path) if path else None
+        self._file: IO[str] | None = None
+        self._lock = threading.Lock()
+        self.t0 = time.monotonic()
+        self.error: str | None = None
+        self.lost = 0
+        if self.path is not None:
+            try:
+                self._file = open(self.path, "w", encoding="utf-8", buffering=1)  # noqa: SIM115
+            except OSError as exc:
+                raise UsageError(
+                    f"cannot write telemetry {self.path}: {exc.strerror or exc}"
+                ) from None
+
+    def _write(self, record: dict[str, Any]) -> None:
+        if self._file is None:
+            return
+        with self._lock:
+            if self.error is not None:
+                self.lost += 1
+                return
+            try:
+                self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
+            except (OSError, ValueError) as exc:
+                self.error = str(getattr(exc, "strerror", None) or exc)
+                self.lost += 1
+                print(f"jetbot-rt: telemetry {self.path} not writable any more "
+                      f"({self.error}); still driving, records dropped", file=sys.stderr)
+
+    def record(self, record: dict[str, Any]) -> None:
+        self._write(record)
+
+    def event(self, name: str, **fields: Any) -> dict[str, Any]:
+        record = {"t": round(time.monotonic() - self.t0, 6), "event": name, **fields}
+        self._write(record)
+        return record
+
+    def close(self) -> None:
+        with self._lock:
+            if self._file is not None:
+                with contextlib.suppress(OSError):
+                    self._file.close()
+                self._file = None

@@ -1,0 +1,47 @@
+import math
+
+import pytest
+
+from jetbot_rt.actions import DEFAULT_MAX_SPEED, ActionPipeline, resolve_max_speed
+from jetbot_rt.errors import Fault
+
+
+@pytest.mark.parametrize(
+    ("mu", "expected"),
+    [
+        ((1.0, 1.0), (0.1, 0.1)),
+        ((0.5, -0.25), (0.05, -0.025)),
+        ((3.0, -7.0), (0.1, -0.1)),  # mu clamped to [-1, 1] before scaling
+        ((0.0, 0.0), (0.0, 0.0)),
+    ],
+)
+def test_default_pipeline(mu, expected):
+    assert ActionPipeline().duties(mu) == pytest.approx(expected)
+
+
+def test_trim_and_sign_per_wheel():
+    pipeline = ActionPipeline(max_speed=0.5, trim=(0.8, 1.2), sign=(1, -1))
+    assert pipeline.duties((1.0, 1.0)) == pytest.approx((0.4, -0.6))
+
+
+def test_output_clamped_to_unit_range():
+    pipeline = ActionPipeline(max_speed=1.0, trim=(2.0, 2.0))
+    assert pipeline.duties((1.0, -1.0)) == (1.0, -1.0)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_is_a_fault(bad):
+    with pytest.raises(Fault, match="non-finite"):
+        ActionPipeline().duties((0.0, bad))
+
+
+def test_wrong_count_is_a_fault():
+    with pytest.raises(Fault, match="expected 2"):
+        ActionPipeline().duties((0.0, 0.0, 0.0))
+
+
+def test_max_speed_resolution_order():
+    assert resolve_max_speed(0.3, 0.2) == 0.3
+    assert resolve_max_speed(None, 0.2) == 0.2
+    assert resolve_max_speed(None, None) == DEFAULT_MAX_SPEED
+    assert resolve_max_speed(None, 7.0) == DEFAULT_MAX_SPEED

@@ -1,0 +1,114 @@
+import time
+
+import numpy as np
+
+from jetbot_rt.actions import ActionPipeline
+from jetbot_rt.hal.null import NullCamera, NullDrive
+from jetbot_rt.loop import ControlLoop
+from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.telemetry import Telemetry
+
+
+class ScriptedPolicy:
+    """Returns mu from a list; sleeps on the ticks named in ``slow``."""
+
+    def __init__(self, mus, slow=None):
+        self.mus = mus
+        self.slow = slow or {}
+        self.calls = 0
+
+    def infer(self, image):
+        self.calls += 1
+        time.sleep(self.slow.get(self.calls, 0.0))
+        return np.array(self.mus[min(self.calls, len(self.mus)) - 1])
+
+
+def make_loop(policy, period=0.02, camera=None, timeout=None, telemetry=None):
+    latch = SafeStopLatch()
+    drive = NullDrive()
+    guarded = GuardedDrive(drive, latch)
+    watchdog = Watchdog(latch, timeout) if timeout else None
+    loop = ControlLoop(
+        camera=camera or NullCamera(), policy=policy, actions=ActionPipeline(),
+        drive=guarded, latch=latch, watchdog=watchdog,
+        telemetry=telemetry or Telemetry(None), period=period, max_frame_age=0.1,
+    )
+    return loop, latch, drive, watchdog
+
+
+def test_duration_end_is_not_a_fault_and_rate_holds():
+    loop, latch, drive, _ = make_loop(ScriptedPolicy([[1.0, 0.5]]))
+    loop.run(duration=0.5)
+    assert latch.tripped and not latch.fault
+    assert "duration" in latch.reason
+    assert 20 <= loop.stats.ticks <= 26  # 25 deadlines in 0.5 s at 50 Hz
+    assert drive.last == (0.0, 0.0)
+
+
+def test_overrun_skips_missed_ticks_and_never_bursts():
+    # tick 5 takes 3.5 periods: ticks 6..8 deadlines pass; the loop skips them, counts them
+    period = 0.02
+    loop, latch, _, _ = make_loop(ScriptedPolicy([[0.1, 0.1]], slow={5: 3.5 * period}), period)
+    starts = []
+    original = loop._tick
+
+    def recording_tick(deadline, now):
+        starts.append(now)
+        original(deadline, now)
+
+    loop._tick = recording_tick
+    loop.run(duration=0.4)
+    assert loop.stats.overruns == 3
+    gaps = np.diff(starts)
+    # never two ticks closer than most of a period: no burst after the slow tick
+    assert gaps.min() > 0.5 * period
+    assert gaps.max() >= 3.5 * period
+
+
+def test_non_finite_action_latches_fault(tmp_path):
+    path = tmp_path / "t.jsonl"
+    telemetry = Telemetry(path)
+    loop, latch, drive, _ = make_loop(
+        ScriptedPolicy([[1.0, 1.0], [1.0, 1.0], [float("nan"), 0.0]]), telemetry=telemetry
+    )
+    loop.run(duration=2.0)
+    telemetry.close()
+    assert latch.fault and "non-finite" in latch.reason
+    assert loop.stats.ticks == 2
+    assert drive.last == (0.0, 0.0)
+
+
+def test_stale_frame_latches_fault():
+    class FrozenCamera(NullCamera):
+        def __init__(self):
+            super().__init__()
+            self.frame = super().read()
+
+        def read(self):
+            return self.frame
+
+    loop, latch, _, _ = make_loop(ScriptedPolicy([[1.0, 1.0]]), camera=FrozenCamera())
+    loop.run(duration=2.0)
+    assert latch.fault and latch.reason.startswith("stale frame")
+
+
+def test_exception_in_tick_latches_fault():
+    class Exploding:
+        def infer(self, image):
+            raise RuntimeError("boom")
+
+    loop, latch, _, _ = make_loop(Exploding())
+    loop.run(duration=1.0)
+    assert latch.fault and latch.reason == "exception in tick: RuntimeError: boom"
+
+
+def test_watchdog_stops_a_hung_tick():
+    loop, latch, drive, watchdog = make_loop(
+        ScriptedPolicy([[1.0, 1.0]], slow={4: 0.5}), period=0.02, timeout=0.06
+    )
+    watchdog.start()
+    loop.run(duration=2.0)
+    watchdog.close()
+    assert latch.fault and latch.reason.startswith("watchdog")
+    assert drive.last == (0.0, 0.0)
+    assert loop.stats.ticks == 3

@@ -1,0 +1,111 @@
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+import policy_models
+from jetbot_rt.config import PolicyConfig
+from jetbot_rt.errors import Fault, UsageError
+from jetbot_rt.policy import OnnxPolicy
+
+RED = np.zeros((224, 224, 3), np.uint8)
+RED[..., 0] = 255
+
+
+def channel_probe(path, layout="NHWC", size=224, metadata=None):
+    """mu = [mean of channel 0, mean of channel 2] as the model sees its input."""
+    axes = [1, 2] if layout == "NHWC" else [2, 3]
+    shape = [1, size, size, 3] if layout == "NHWC" else [1, 3, size, size]
+    graph = helper.make_graph(
+        [
+            helper.make_node("ReduceMean", ["obs"], ["means"], axes=axes, keepdims=0),
+            helper.make_node("Gather", ["means", "pick"], ["mu"], axis=1),
+        ],
+        "probe",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, shape)],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])],
+        [numpy_helper.from_array(np.array([0, 2], np.int64), "pick")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+    model.ir_version = 8
+    for key, value in (metadata or {}).items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(model, str(path))
+    return path
+
+
+def test_defaults_without_metadata_are_rl_games_nhwc_rgb_0_255(tmp_path):
+    policy = OnnxPolicy.load(channel_probe(tmp_path / "p.onnx"))
+    info = policy.describe()
+    assert (info["layout"], info["color_order"], info["pixel_range"]) == ("NHWC", "RGB", "0-255")
+    assert info["size"] == [224, 224] and info["dtype"] == "float32"
+    assert policy.infer(RED) == pytest.approx([255.0, 0.0])
+
+
+def test_nchw_small_input_is_resized(tmp_path):
+    policy = OnnxPolicy.load(channel_probe(tmp_path / "p.onnx", layout="NCHW", size=64))
+    assert policy.spec.layout == "NCHW" and policy.spec.width == 64
+    frame = np.zeros((480, 640, 3), np.uint8)
+    frame[..., 2] = 200
+    assert policy.infer(frame) == pytest.approx([0.0, 200.0])
+
+
+def test_metadata_bgr_and_unit_range(tmp_path):
+    meta = {"jetbot_rt.color_order": "BGR", "jetbot_rt.pixel_range": "0-1",
+            "jetbot_rt.max_speed": "0.25"}
+    policy = OnnxPolicy.load(channel_probe(tmp_path / "p.onnx", metadata=meta))
+    # red arrives in the model's channel 2 when it asks for BGR, scaled to 1.0
+    assert policy.infer(RED) == pytest.approx([0.0, 1.0])
+    assert policy.max_speed == 0.25
+
+
+def test_config_overrides_metadata(tmp_path):
+    meta = {"jetbot_rt.color_order": "BGR"}
+    config = PolicyConfig(color_order="RGB", pixel_range="-1-1")
+    policy = OnnxPolicy.load(channel_probe(tmp_path / "p.onnx", metadata=meta), config)
+    assert policy.infer(RED) == pytest.approx([1.0, -1.0])
+
+
+def test_mu_output_is_chosen_over_first_output(tmp_path):
+    path = policy_models.constant(tmp_path / "c.onnx", (0.3, -0.4))
+    policy = OnnxPolicy.load(path)
+    assert policy.action_output == "mu"
+    assert OnnxPolicy.load(path).session.get_outputs()[0].name == "value"
+    assert policy.infer(RED) == pytest.approx([0.3, -0.4])
+
+
+def test_first_output_when_no_mu(tmp_path):
+    policy = OnnxPolicy.load(policy_models.raise_when_dark(tmp_path / "r.onnx", (0.2, 0.1)))
+    assert policy.action_output == "mu_out"
+    assert policy.infer(RED) == pytest.approx([0.2, 0.1])
+
+
+def test_inference_error_is_a_fault(tmp_path):
+    policy = OnnxPolicy.load(policy_models.raise_when_dark(tmp_path / "r.onnx"))
+    with pytest.raises(Fault, match="policy inference failed"):
+        policy.infer(np.zeros((224, 224, 3), np.uint8))
+
+
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (policy_models.three_actions, "expected 2 actions [left, right] in output mu, found"),
+        (policy_models.vector_input, "expected an image input [N,H,W,3] or [N,3,H,W]"),
+        (policy_models.int_input, "expected input dtype float32, float16 or uint8, found"),
+    ],
+)
+def test_unsupported_models(tmp_path, build, message):
+    path = build(tmp_path / "m.onnx")
+    with pytest.raises(UsageError) as info:
+        OnnxPolicy.load(path)
+    assert message in str(info.value) and str(path) in str(info.value)
+
+
+def test_missing_and_corrupt_files(tmp_path):
+    with pytest.raises(UsageError, match="no such file"):
+        OnnxPolicy.load(tmp_path / "missing.onnx")
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(b"\x08\x07 this is not a protobuf model")
+    with pytest.raises(UsageError, match="not a loadable ONNX model"):
+        OnnxPolicy.load(corrupt)
