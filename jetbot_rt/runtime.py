@@ -80,7 +80,6 @@ class Runtime:
         self.watchdog: Watchdog | None = None
         self.control: Any = None
         self.notifier: Any = None
-        self.latch.on_trip(self._log_trip)
 
     def _log_trip(self, reason: str) -> None:
         self.telemetry.event("safe_stop", reason=reason, fault=self.latch.fault, cmd=[0.0, 0.0])
@@ -105,6 +104,8 @@ class Runtime:
         options = BackendOptions(frame_size=(spec.width, spec.height), gui=self.args.gui)
         self.backend = make_backend(self.args.backend, self.config, options)
         self.drive = GuardedDrive(self.backend.drive, self.latch)
+        # registered after the drive's own zeroing callback: the event is logged once it is done
+        self.latch.on_trip(self._log_trip)
         return policy
 
     def warm_up(self, policy: OnnxPolicy) -> None:
