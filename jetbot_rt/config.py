@@ -111,8 +111,9 @@ class MotorsConfig:
     """adafruit_motorhat only: which of MotorKit's motor1..motor4 is the left wheel."""
     right_motor: int = field(default=2, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
     pwm_frequency: float = field(
-        default=1600.0, metadata=_check(lambda v: 24 <= v <= 1526, "24..1526 Hz")
+        default=1600.0, metadata=_check(lambda v: 24 <= v <= 1600, "24..1600 Hz")
     )
+    """MotorKit's default; the chip's prescaler tops out at about 1526 Hz and takes the nearest."""
     i2c_retries: int = field(default=3, metadata=_check(lambda v: 0 <= v <= 20, "0..20"))
     """Extra attempts after a transient I2C OSError before it counts as a fault."""
 

@@ -8,6 +8,7 @@ driver). The watchdog has its own thread. Every way out writes zero to the drive
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import os
 import signal
 import sys
@@ -161,7 +162,9 @@ class Runtime:
         if stats is None or stats.ticks == 0:
             return "starting"
         elapsed = time.monotonic() - (stats.t_start or time.monotonic())
-        rate = stats.ticks / elapsed if elapsed > 0 else 0.0
+        if elapsed < 1.0:
+            return f"driving: {stats.ticks} ticks"
+        rate = stats.ticks / elapsed
         return f"driving: {rate:.1f} Hz, {stats.ticks} ticks, {stats.overruns} overruns"
 
     def run(self) -> RunResult:
@@ -295,6 +298,8 @@ def print_summary(summary: dict[str, Any], rate_hz: float) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # A hang that systemd's watchdog ends with SIGABRT leaves every thread's stack in the journal.
+    faulthandler.enable()
     runtime = Runtime(args)
     try:
         return runtime.run().exit_code

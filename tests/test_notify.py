@@ -1,0 +1,182 @@
+"""The notify protocol against a real AF_UNIX datagram socket, as systemd would bind it."""
+
+from __future__ import annotations
+
+import os
+import socket
+import uuid
+from collections.abc import Iterator
+from itertools import pairwise
+from pathlib import Path
+
+import pytest
+
+from jetbot_rt.notify import Notifier
+
+
+class Listener:
+    """A bound datagram socket standing in for systemd's notify socket."""
+
+    def __init__(self, name: str, address: str | bytes) -> None:
+        self.name = name  # what goes into NOTIFY_SOCKET
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(address)
+        self.sock.setblocking(False)
+
+    def messages(self) -> list[dict[str, str]]:
+        """Every datagram queued so far (delivery on a local socket is synchronous)."""
+        received = []
+        while True:
+            try:
+                data = self.sock.recv(4096)
+            except BlockingIOError:
+                return received
+            received.append(dict(line.split("=", 1) for line in data.decode().split("\n")))
+
+
+@pytest.fixture(params=["path", "abstract"])
+def listener(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Listener]:
+    if request.param == "path":
+        path = str(tmp_path / "notify.sock")
+        listen = Listener(path, path)
+    else:
+        name = f"jetbot-rt-test-{uuid.uuid4().hex}"
+        listen = Listener("@" + name, b"\0" + name.encode())
+    yield listen
+    listen.sock.close()
+
+
+def notifier_for(
+    listener: Listener,
+    monkeypatch: pytest.MonkeyPatch,
+    watchdog_usec: int | None = 300_000,
+    watchdog_pid: str | None = None,
+) -> Notifier:
+    monkeypatch.setenv("NOTIFY_SOCKET", listener.name)
+    if watchdog_usec is None:
+        monkeypatch.delenv("WATCHDOG_USEC", raising=False)
+    else:
+        monkeypatch.setenv("WATCHDOG_USEC", str(watchdog_usec))
+    if watchdog_pid is None:
+        monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    else:
+        monkeypatch.setenv("WATCHDOG_PID", watchdog_pid)
+    return Notifier.from_env()
+
+
+def test_ready_status_and_stopping_arrive(listener: Listener, monkeypatch: pytest.MonkeyPatch):
+    notifier = notifier_for(listener, monkeypatch)
+    notifier.ready("running at 30 Hz")
+    notifier.stopping("safe stop: SIGTERM")
+    assert listener.messages() == [
+        {"READY": "1", "STATUS": "running at 30 Hz"},
+        {"STOPPING": "1", "STATUS": "safe stop: SIGTERM"},
+    ]
+
+
+def test_watchdog_every_third_of_watchdog_usec_after_ready_only(
+    listener: Listener, monkeypatch: pytest.MonkeyPatch
+):
+    notifier = notifier_for(listener, monkeypatch, watchdog_usec=300_000)
+    assert notifier.watchdog_enabled
+    assert notifier.watchdog_interval == pytest.approx(0.1)
+    statuses = iter(range(1000))
+
+    def status() -> str:
+        return f"tick {next(statuses)}"
+
+    notifier.tick(0.0, status)
+    assert listener.messages() == [], "nothing before READY=1"
+    notifier.ready("ready")
+    listener.messages()
+
+    pings, status_times = [], []
+    for step in range(301):  # 3 s of ticks at 100 Hz, times made up: no sleeping
+        now = 10.0 + step * 0.01
+        notifier.tick(now, status)
+        for message in listener.messages():
+            if "WATCHDOG" in message:
+                assert message["WATCHDOG"] == "1"
+                pings.append(now)
+            if "STATUS" in message:
+                status_times.append(now)
+    gaps = [b - a for a, b in pairwise(pings)]
+    assert pings[0] == 10.0, "the first completed tick after READY pings at once"
+    assert max(gaps) <= 0.15, "at least twice per WATCHDOG_USEC (0.3 s)"
+    assert min(gaps) >= 0.099, "not on every tick"
+    assert len(status_times) == 4  # t = 10, 11, 12, 13: at most once per second
+    assert all(b - a >= 0.999 for a, b in pairwise(status_times))
+
+
+def test_no_watchdog_when_watchdog_pid_is_another_process(
+    listener: Listener, monkeypatch: pytest.MonkeyPatch
+):
+    notifier = notifier_for(listener, monkeypatch, watchdog_pid=str(os.getpid() + 1))
+    assert not notifier.watchdog_enabled
+    assert notifier.watchdog_interval is None
+    notifier.ready("ready")
+    for step in range(50):
+        notifier.tick(step * 0.1, lambda: "running")
+    messages = listener.messages()
+    assert not any("WATCHDOG" in m for m in messages)
+    assert any("STATUS" in m for m in messages[1:]), "status still goes out"
+
+
+def test_watchdog_when_watchdog_pid_is_this_process(
+    listener: Listener, monkeypatch: pytest.MonkeyPatch
+):
+    notifier = notifier_for(listener, monkeypatch, watchdog_pid=str(os.getpid()))
+    assert notifier.watchdog_enabled
+    notifier.ready("ready")
+    notifier.tick(1.0, lambda: "running")
+    assert listener.messages()[-1]["WATCHDOG"] == "1"
+
+
+def test_no_watchdog_without_watchdog_usec(listener: Listener, monkeypatch: pytest.MonkeyPatch):
+    notifier = notifier_for(listener, monkeypatch, watchdog_usec=None)
+    assert not notifier.watchdog_enabled
+    notifier.ready("ready")
+    notifier.tick(1.0, lambda: "running")
+    assert not any("WATCHDOG" in m for m in listener.messages())
+
+
+def test_nothing_after_stopping(listener: Listener, monkeypatch: pytest.MonkeyPatch):
+    notifier = notifier_for(listener, monkeypatch)
+    notifier.ready("ready")
+    notifier.stopping("stopping")
+    listener.messages()
+    notifier.tick(100.0, lambda: "still ticking")
+    assert listener.messages() == []
+
+
+def test_status_stays_one_line(listener: Listener, monkeypatch: pytest.MonkeyPatch):
+    notifier = notifier_for(listener, monkeypatch)
+    notifier.ready("camera ok\nREADY=0")
+    assert listener.messages() == [{"READY": "1", "STATUS": "camera ok READY=0"}]
+
+
+def test_without_notify_socket_nothing_happens(monkeypatch: pytest.MonkeyPatch, capsys):
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
+    monkeypatch.setenv("WATCHDOG_USEC", "300000")
+    notifier = Notifier.from_env()
+    assert not notifier.enabled
+    assert not notifier.watchdog_enabled
+    notifier.ready("ready")
+    notifier.tick(1.0, lambda: pytest.fail("status() must not be called"))
+    notifier.stopping("stopping")
+    assert capsys.readouterr().err == ""
+
+
+def test_send_errors_are_reported_once_and_never_raised(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
+):
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "nobody-listens.sock"))
+    monkeypatch.setenv("WATCHDOG_USEC", "300000")
+    notifier = Notifier.from_env()
+    notifier.ready("ready")
+    for step in range(10):
+        notifier.tick(step * 1.0, lambda: "running")
+    notifier.stopping("stopping")
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "cannot notify systemd" in err and "nobody-listens.sock" in err

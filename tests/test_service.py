@@ -1,0 +1,199 @@
+"""``jetbot-rt install-service`` into a staging root, the unit checked by systemd-analyze."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path, PurePosixPath
+
+import pytest
+
+from jetbot_rt import service
+from jetbot_rt.cli import main
+from jetbot_rt.config import Config, load_config
+
+REPO = Path(__file__).resolve().parents[1]
+UNIT = PurePosixPath("etc/systemd/system/jetbot-rt.service")
+CONFIG = PurePosixPath("etc/jetbot-rt/config.toml")
+needs_systemd_analyze = pytest.mark.skipif(
+    shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed"
+)
+
+
+def install(root: Path, *extra: str, user: str = "root") -> int:
+    return main(["install-service", "--root", str(root), "--user", user, *extra])
+
+
+def systemd_verify(unit: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        ["systemd-analyze", "verify", "--man=no", str(unit)],
+        capture_output=True, text=True, timeout=60,
+    )
+
+
+def unit_values(text: str, key: str) -> list[str]:
+    return re.findall(rf"^{key}=(.*)$", text, flags=re.MULTILINE)
+
+
+def test_install_writes_unit_and_default_config(tmp_path: Path, capsys):
+    assert install(tmp_path) == 0
+    unit = (tmp_path / UNIT).read_text()
+    assert "@" not in "".join(line for line in unit.splitlines() if not line.startswith("#"))
+    [exec_start] = unit_values(unit, "ExecStart")
+    [exec_stop_post] = unit_values(unit, "ExecStopPost")
+    executable = Path(exec_start.split()[0])
+    assert executable.is_absolute() and os.access(executable, os.X_OK)
+    assert executable.name == "jetbot-rt"
+    assert exec_start == f"{executable} run --backend real --config /etc/jetbot-rt/config.toml"
+    assert exec_stop_post == f"{executable} stop --config /etc/jetbot-rt/config.toml"
+    assert unit_values(unit, "User") == ["root"]
+    assert unit_values(unit, "Type") == ["notify"]
+    assert unit_values(unit, "RuntimeDirectory") == ["jetbot-rt"]
+    config = tmp_path / CONFIG
+    assert config.read_text() == service.default_config_text()
+    assert config.stat().st_mode & 0o777 == 0o644
+    out = capsys.readouterr().out
+    assert "systemctl daemon-reload" in out and "enable --now jetbot-rt" in out
+    assert "journalctl -u jetbot-rt" in out
+
+
+@needs_systemd_analyze
+def test_installed_unit_passes_systemd_analyze_verify(tmp_path: Path):
+    assert install(tmp_path) == 0
+    result = systemd_verify(tmp_path / UNIT)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == "", "no warnings either (unknown keys, bad values)"
+
+
+@needs_systemd_analyze
+def test_systemd_analyze_verify_catches_a_broken_unit(tmp_path: Path):
+    """The check above can fail: a typo in a key and a missing executable are reported."""
+    assert install(tmp_path) == 0
+    unit = tmp_path / UNIT
+    text = unit.read_text().replace("NoNewPrivileges=", "NoNewPrivilege=")
+    unit.write_text(text.replace("ExecStart=/", "ExecStart=/nonexistent/"))
+    result = systemd_verify(unit)
+    assert "NoNewPrivilege" in result.stderr
+    assert result.returncode != 0
+
+
+@needs_systemd_analyze
+def test_executable_path_with_a_space_is_quoted(tmp_path: Path):
+    installed = Path(sysconfig.get_path("scripts")) / "jetbot-rt"
+    odd_dir = tmp_path / "my venv" / "bin"
+    odd_dir.mkdir(parents=True)
+    shutil.copy2(installed, odd_dir / "jetbot-rt")
+    text = service.render_unit(odd_dir / "jetbot-rt", "root", PurePosixPath("/etc/a%b.toml"))
+    assert f'ExecStart="{odd_dir}/jetbot-rt" run --backend real --config /etc/a%%b.toml' in text
+    unit = tmp_path / "jetbot-rt.service"
+    unit.write_text(text)
+    result = systemd_verify(unit)
+    assert result.returncode == 0 and result.stderr == "", result.stderr
+
+
+def test_existing_config_is_never_overwritten(tmp_path: Path):
+    config = tmp_path / CONFIG
+    config.parent.mkdir(parents=True)
+    config.write_text("[motors]\nlayout = \"adafruit_motorhat\"\n")
+    assert install(tmp_path) == 0
+    assert install(tmp_path, "--force") == 0
+    assert config.read_text() == "[motors]\nlayout = \"adafruit_motorhat\"\n"
+
+
+def test_existing_unit_needs_force(tmp_path: Path, capsys):
+    unit = tmp_path / UNIT
+    unit.parent.mkdir(parents=True)
+    unit.write_text("[Service]\nExecStart=/bin/true\n")
+    assert install(tmp_path) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--force" in err
+    assert unit.read_text() == "[Service]\nExecStart=/bin/true\n"
+    assert not (tmp_path / CONFIG).exists(), "nothing written after an error"
+    assert install(tmp_path, "--force") == 0
+    assert "Type=notify" in unit.read_text()
+    assert install(tmp_path) == 0, "the same unit again is fine without --force"
+    assert "unchanged" in capsys.readouterr().out
+
+
+def test_unknown_user_is_one_line_exit_2(tmp_path: Path):
+    result = subprocess.run(
+        [sys.executable, "-m", "jetbot_rt.cli", "install-service", "--root", str(tmp_path),
+         "--user", "no-such-user-jetbot-rt"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1, result.stderr
+    assert "no-such-user-jetbot-rt" in result.stderr and "useradd --system" in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_staged_passwd_decides_which_users_exist(tmp_path: Path):
+    (tmp_path / "etc").mkdir()
+    (tmp_path / "etc" / "passwd").write_text(
+        "root:x:0:0:root:/root:/bin/bash\njetbot:x:998:998::/nonexistent:/usr/sbin/nologin\n"
+    )
+    assert install(tmp_path, user="jetbot") == 0
+    assert unit_values((tmp_path / UNIT).read_text(), "User") == ["jetbot"]
+    assert install(tmp_path, "--force", user="nobody") == 2, "on the host, not in the image"
+
+
+def test_unwritable_target_is_one_line_exit_2(tmp_path: Path, capsys):
+    # Running as root, permissions cannot be taken away; a file where a directory must go can.
+    (tmp_path / "etc").mkdir()
+    (tmp_path / "etc" / "systemd").write_text("not a directory")
+    assert install(tmp_path) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot write" in err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [(["--config", "relative.toml"], "absolute"), (["--root", "/nonexistent-root"], "directory")],
+)
+def test_bad_arguments_exit_2(tmp_path: Path, capsys, args: list[str], message: str):
+    argv = ["install-service", "--user", "root", "--root", str(tmp_path), *args]
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_protect_home_is_relaxed_only_for_an_installation_in_a_home():
+    etc_config = PurePosixPath("/etc/jetbot-rt/config.toml")
+    package = PurePosixPath(Path(service.__file__).resolve())
+    if any(package.is_relative_to(home) for home in service.HOME_DIRS):
+        pytest.skip("this checkout itself lives in a home directory")
+    in_opt = service.render_unit(Path("/opt/jetbot-rt/bin/jetbot-rt"), "jetbot", etc_config)
+    assert unit_values(in_opt, "ProtectHome") == ["yes"]
+    in_home = service.render_unit(Path("/home/jetson/.local/bin/jetbot-rt"), "jetbot", etc_config)
+    assert unit_values(in_home, "ProtectHome") == ["read-only"]
+    config_in_home = PurePosixPath("/root/jetbot.toml")
+    assert service.protect_home(Path("/opt/jetbot-rt/bin/jetbot-rt"), config_in_home) == "read-only"
+
+
+def test_repository_unit_is_the_packaged_template():
+    packaged = service.unit_template()
+    assert (REPO / "systemd" / "jetbot-rt.service").read_text() == packaged
+    for placeholder in ("@EXECUTABLE@", "@USER@", "@CONFIG@", "@PROTECT_HOME@"):
+        assert placeholder in packaged
+
+
+def test_default_config_loads_to_the_defaults(tmp_path: Path):
+    path = tmp_path / "config.toml"
+    path.write_text(service.default_config_text())
+    assert load_config(path) == Config()
+
+
+def test_default_config_mentions_every_key():
+    text = service.default_config_text()
+    sections = re.split(r"^\[(\w+)\]$", text, flags=re.MULTILINE)
+    keys_by_section = {
+        name: set(re.findall(r"^#? ?(\w+) = ", body, flags=re.MULTILINE))
+        for name, body in zip(sections[1::2], sections[2::2], strict=True)
+    }
+    for section in dataclasses.fields(Config):
+        declared = {f.name for f in dataclasses.fields(getattr(Config(), section.name))}
+        assert declared <= keys_by_section.get(section.name, set()), section.name
