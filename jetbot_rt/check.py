@@ -1,0 +1,170 @@
+"""``jetbot-rt check``: a self-test for a newly assembled robot, one table row per part.
+
+Motor board (does a PCA9685 answer at the address), camera (N frames at the expected size and
+rate, measured fps and mean colour), policy (loads, what it expects), onnxruntime providers.
+The motors move only with ``--spin``: a short low-duty pulse per wheel, then the hardware stop.
+Exit 1 if any row fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from jetbot_rt.config import Config, load_config
+from jetbot_rt.errors import UsageError, first_line
+
+SPIN_DUTY = 0.3
+SPIN_SECONDS = 0.5
+MIN_RATE_FRACTION = 0.8  # measured fps below this share of [camera] fps fails the row
+
+
+@dataclass
+class Row:
+    name: str
+    ok: bool
+    detail: str
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="TOML config file")
+    parser.add_argument("--policy", help="ONNX policy (default: [policy] path, else bundled)")
+    parser.add_argument("--frames", type=int, default=30, help="camera frames to take (30)")
+    parser.add_argument(
+        "--spin", action="store_true",
+        help=f"pulse each wheel forward at duty {SPIN_DUTY} for {SPIN_SECONDS} s",
+    )
+
+
+def _row(name: str, probe: Callable[[], str]) -> Row:
+    try:
+        return Row(name, True, probe())
+    except Exception as exc:  # a self-test reports every failure as a row, never a traceback
+        return Row(name, False, first_line(exc))
+
+
+def check_motor_board(config: Config) -> str:
+    from jetbot_rt.hal.i2c import I2CBus
+    from jetbot_rt.hal.motors import PRE_SCALE, read_mode1
+
+    motors = config.motors
+    with I2CBus.open(motors.i2c_bus, motors.i2c_retries, motors.address) as bus:
+        mode1 = read_mode1(bus, motors.address)
+        prescale = bytearray(1)
+        bus.writeto_then_readfrom(motors.address, bytes((PRE_SCALE,)), prescale)
+    pwm_hz = 25e6 / 4096 / (prescale[0] + 1)
+    return (
+        f"PCA9685 answers on I2C bus {motors.i2c_bus} at 0x{motors.address:02x} "
+        f"(MODE1 0x{mode1:02x}, PWM {pwm_hz:.0f} Hz); layout {motors.layout}"
+    )
+
+
+def spin_wheels(config: Config) -> str:
+    from jetbot_rt.hal.motors import open_drive
+
+    drive = open_drive(config.motors)
+    try:
+        for left, right in ((SPIN_DUTY, 0.0), (0.0, SPIN_DUTY)):
+            drive.write(left, right)
+            time.sleep(SPIN_SECONDS)
+            drive.write(0.0, 0.0)
+            time.sleep(0.2)
+    finally:
+        drive.stop()
+        drive.close()
+    return f"left, then right wheel forward at duty {SPIN_DUTY} for {SPIN_SECONDS} s; all off"
+
+
+def check_camera(config: Config, size: tuple[int, int], frames: int) -> str:
+    from jetbot_rt.hal.gst_camera import GstCamera
+
+    camera = GstCamera(config.camera, size)
+    camera.start()
+    try:
+        taken: list[Any] = []
+        deadline = time.monotonic() + 2.0 + 2.0 * frames / config.camera.fps
+        last_index = -1
+        while len(taken) < frames and time.monotonic() < deadline:
+            frame = camera.read()
+            if frame is not None and frame.index != last_index:
+                taken.append(frame)
+                last_index = frame.index
+            time.sleep(0.002)
+    finally:
+        camera.stop()
+    if len(taken) < frames:
+        raise RuntimeError(f"only {len(taken)} of {frames} frames arrived, then the camera stalled")
+    shape = taken[-1].image.shape
+    if shape != (size[1], size[0], 3):
+        raise RuntimeError(f"frames are {shape}, expected {(size[1], size[0], 3)}")
+    span = taken[-1].t_capture - taken[0].t_capture
+    fps = (len(taken) - 1) / span if span > 0 else float("inf")
+    mean = taken[-1].image.reshape(-1, 3).mean(axis=0)
+    detail = (
+        f"{frames} frames {size[0]}x{size[1]} RGB at {fps:.1f} fps; "
+        f"mean colour R {mean[0]:.0f} G {mean[1]:.0f} B {mean[2]:.0f}"
+    )
+    if fps < MIN_RATE_FRACTION * config.camera.fps:
+        raise RuntimeError(f"{detail}: slower than {config.camera.fps:g} fps")
+    return detail
+
+
+def _policy_path(args: argparse.Namespace, config: Config) -> Path:
+    from jetbot_rt.policy import bundled_policy_path
+
+    path = args.policy or config.policy.path
+    return Path(path) if path else bundled_policy_path()
+
+
+def describe_policy(description: dict[str, Any]) -> str:
+    width, height = description["size"]
+    return (
+        f"{description['path']}: input {description['input']} {description['layout']} "
+        f"{width}x{height} {description['dtype']} {description['color_order']} "
+        f"{description['pixel_range']}; action output {description['action_output']}; "
+        f"max_speed {description['max_speed']}; running on {', '.join(description['providers'])}"
+    )
+
+
+def check_providers() -> str:
+    import onnxruntime as ort
+
+    return f"onnxruntime {ort.__version__}: {', '.join(ort.get_available_providers())}"
+
+
+def print_table(rows: list[Row]) -> None:
+    width = max(len(row.name) for row in rows)
+    for row in rows:
+        print(f"{row.name:<{width}}  {'ok  ' if row.ok else 'FAIL'}  {row.detail}")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    if args.frames < 2:
+        raise UsageError(f"--frames must be at least 2, got {args.frames}")
+    rows = [_row("motor board", lambda: check_motor_board(config))]
+    if args.spin:
+        rows.append(_row("spin", lambda: spin_wheels(config)))
+
+    size = (224, 224)
+    described: dict[str, Any] = {}
+
+    def load_policy() -> str:
+        from jetbot_rt.policy import OnnxPolicy
+
+        policy = OnnxPolicy.load(_policy_path(args, config), config.policy)
+        described.update(policy.describe())
+        return describe_policy(described)
+
+    policy_row = _row("policy", load_policy)
+    if described:
+        size = (described["size"][0], described["size"][1])
+    rows.append(_row("camera", lambda: check_camera(config, size, args.frames)))
+    rows.append(policy_row)
+    rows.append(_row("providers", check_providers))
+    print_table(rows)
+    return 0 if all(row.ok for row in rows) else 1

@@ -1,0 +1,175 @@
+"""The runtime's control channel: a UNIX socket on which ``jetbot-rt stop`` asks a running
+``jetbot-rt run`` to latch its safe stop.
+
+Protocol: one line per connection. ``stop`` -> ``ok`` (after ``on_stop`` has run), ``ping``
+-> ``pong``. The socket is mode 0600 in a directory of mode 0700, so only the runtime's user
+(and root) can stop it this way.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import struct
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+from jetbot_rt.errors import UsageError
+
+SOCKET_NAME = "control.sock"
+# The systemd unit's RuntimeDirectory=jetbot-rt: where the service's socket is, seen from a
+# shell that has no $RUNTIME_DIRECTORY.
+SERVICE_SOCKET = Path("/run/jetbot-rt") / SOCKET_NAME
+_MAX_REQUEST = 64
+
+
+def default_socket_path() -> Path:
+    """$JETBOT_RT_RUNTIME_DIR, else $RUNTIME_DIRECTORY (systemd), else
+    $XDG_RUNTIME_DIR/jetbot-rt, else /tmp/jetbot-rt-<uid>; the file is ``control.sock``."""
+    explicit = os.environ.get("JETBOT_RT_RUNTIME_DIR")
+    if explicit:
+        return Path(explicit) / SOCKET_NAME
+    systemd = os.environ.get("RUNTIME_DIRECTORY")
+    if systemd:
+        return Path(systemd.split(":")[0]) / SOCKET_NAME  # systemd joins several with ':'
+    xdg = os.environ.get("XDG_RUNTIME_DIR")
+    if xdg:
+        return Path(xdg) / "jetbot-rt" / SOCKET_NAME
+    return Path(f"/tmp/jetbot-rt-{os.getuid()}") / SOCKET_NAME
+
+
+def _peer_pid(conn: socket.socket) -> int:
+    creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    return struct.unpack("3i", creds)[0]
+
+
+def _is_live(path: Path) -> bool:
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    probe.settimeout(0.5)
+    try:
+        probe.connect(str(path))
+    except OSError:
+        return False
+    finally:
+        probe.close()
+    return True
+
+
+def _private_dir(directory: Path) -> None:
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if directory.stat().st_uid != os.getuid():
+        raise UsageError(f"control socket directory {directory} belongs to another user")
+
+
+class ControlServer:
+    """Serves the control socket in a daemon thread until ``close()``."""
+
+    def __init__(self, on_stop: Callable[[str], None], path: Path | None = None) -> None:
+        self.on_stop = on_stop
+        self.path = Path(path) if path is not None else default_socket_path()
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._closed = threading.Event()
+        self._inode: int | None = None
+
+    def start(self) -> None:
+        _private_dir(self.path.parent)
+        if self.path.exists() or self.path.is_symlink():
+            if _is_live(self.path):
+                raise UsageError(
+                    f"another jetbot-rt is running (control socket {self.path} answers); "
+                    "stop it first with: jetbot-rt stop"
+                )
+            self.path.unlink()  # left by a process that died
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old_umask = os.umask(0o177)  # the socket file is created 0600, never wider
+        try:
+            sock.bind(str(self.path))
+        finally:
+            os.umask(old_umask)
+        os.chmod(self.path, 0o600)
+        self._inode = self.path.stat().st_ino
+        sock.listen(4)
+        sock.settimeout(0.2)  # lets the thread notice close()
+        self._sock = sock
+        self._thread = threading.Thread(target=self._serve, name="jetbot-rt-control", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._closed.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+            # Remove the file only if it is still ours (not a successor's).
+            with contextlib.suppress(OSError):
+                if self.path.stat().st_ino == self._inode:
+                    self.path.unlink()
+
+    def _serve(self) -> None:
+        assert self._sock is not None
+        while not self._closed.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            with conn:
+                try:
+                    self._answer(conn)
+                except OSError:
+                    continue  # a client that went away mid-request
+
+    def _answer(self, conn: socket.socket) -> None:
+        conn.settimeout(1.0)
+        request = conn.recv(_MAX_REQUEST).decode(errors="replace").strip()
+        if request == "stop":
+            try:
+                self.on_stop(f"jetbot-rt stop from pid {_peer_pid(conn)}")
+                reply = "ok"
+            except Exception as exc:
+                reply = f"error {type(exc).__name__}: {exc}"
+        elif request == "ping":
+            reply = "pong"
+        else:
+            reply = "error unknown request"
+        conn.sendall(reply.encode() + b"\n")
+
+
+def _candidates(path: Path | None) -> list[Path]:
+    if path is not None:
+        return [Path(path)]
+    paths = [default_socket_path()]
+    explicit = os.environ.get("JETBOT_RT_RUNTIME_DIR") or os.environ.get("RUNTIME_DIRECTORY")
+    if not explicit and SERVICE_SOCKET not in paths:
+        paths.append(SERVICE_SOCKET)
+    return paths
+
+
+def request_stop(path: Path | None = None, timeout: float = 0.5) -> bool:
+    """Ask a running runtime to latch its safe stop; True when one acknowledged.
+
+    Without ``path``, tries the default socket, then (unless a runtime directory is set in
+    the environment) the systemd service's.
+    """
+    acknowledged = False
+    for candidate in _candidates(path):
+        if not candidate.exists():
+            continue
+        client = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        client.settimeout(timeout)
+        try:
+            client.connect(str(candidate))
+            client.sendall(b"stop\n")
+            reply = client.recv(_MAX_REQUEST)
+        except OSError:
+            continue
+        finally:
+            client.close()
+        acknowledged = acknowledged or reply.strip() == b"ok"
+    return acknowledged

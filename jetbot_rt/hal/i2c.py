@@ -1,0 +1,159 @@
+"""An I2C bus on Linux's i2c-dev (through smbus2) with the interface of CircuitPython's
+``busio.I2C``, so Adafruit's drivers run on a Jetson without Blinka's board detection.
+
+Every transaction is retried a bounded number of times on ``OSError`` (a motor's electrical
+noise can make one transfer fail); one that keeps failing becomes an ``I2CFault`` naming the
+bus and address, which the runtime turns into a safe stop.
+
+``JETBOT_RT_I2C_EMULATOR=<state file>`` replaces the device with the register-level PCA9685
+emulator sharing its registers through that file: for tests and dry runs only.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from typing import Any
+
+from jetbot_rt.errors import Fault, UsageError
+
+EMULATOR_ENV = "JETBOT_RT_I2C_EMULATOR"
+RETRY_DELAY_S = 0.001
+
+
+class I2CFault(Fault):
+    """An I2C transaction that kept failing after its retries."""
+
+
+def open_smbus(bus_number: int, emulated_address: int = 0x60) -> Any:
+    """``smbus2.SMBus(bus_number)``, or the PCA9685 emulator when ``$JETBOT_RT_I2C_EMULATOR``
+    is set. Raises ``UsageError`` when the device node cannot be opened."""
+    state_file = os.environ.get(EMULATOR_ENV)
+    if state_file:
+        from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+
+        return PCA9685Emulator(address=emulated_address, state_file=state_file)
+    from smbus2 import SMBus
+
+    try:
+        return SMBus(bus_number)
+    except OSError as exc:
+        raise UsageError(
+            f"cannot open /dev/i2c-{bus_number}: {exc.strerror or exc} "
+            "(is the bus enabled and is this user in the i2c group?)"
+        ) from None
+
+
+def _view(buffer: Any, start: int, end: int | None) -> memoryview:
+    view = memoryview(buffer)
+    return view[start : len(view) if end is None else end]
+
+
+class I2CBus:
+    """``busio.I2C``'s interface over an ``smbus2.SMBus``-like object (``i2c_rdwr``,
+    ``write_quick``)."""
+
+    def __init__(self, smbus: Any, bus_number: int, retries: int = 3) -> None:
+        self.smbus = smbus
+        self.bus_number = bus_number
+        self.retries = retries
+        self._lock = threading.Lock()
+
+    @classmethod
+    def open(cls, bus_number: int, retries: int = 3, emulated_address: int = 0x60) -> I2CBus:
+        return cls(open_smbus(bus_number, emulated_address), bus_number, retries)
+
+    # ---- locking (busio.I2C) -----------------------------------------------------------
+
+    def try_lock(self) -> bool:
+        return self._lock.acquire(blocking=False)
+
+    def unlock(self) -> None:
+        self._lock.release()
+
+    # ---- transfers (busio.I2C) ---------------------------------------------------------
+
+    def writeto(self, address: int, buffer: Any, *, start: int = 0, end: int | None = None) -> None:
+        data = bytes(_view(buffer, start, end))
+        if not data:
+            # A zero-length write is a probe (Adafruit's I2CDevice does this): SMBus quick write.
+            self._retry(address, lambda: self.smbus.write_quick(address))
+            return
+        from smbus2 import i2c_msg
+
+        self._retry(address, lambda: self.smbus.i2c_rdwr(i2c_msg.write(address, data)))
+
+    def readfrom_into(
+        self, address: int, buffer: Any, *, start: int = 0, end: int | None = None
+    ) -> None:
+        from smbus2 import i2c_msg
+
+        target = _view(buffer, start, end)
+
+        def read() -> None:
+            message = i2c_msg.read(address, len(target))
+            self.smbus.i2c_rdwr(message)
+            target[:] = bytes(message)
+
+        self._retry(address, read)
+
+    def writeto_then_readfrom(
+        self,
+        address: int,
+        buffer_out: Any,
+        buffer_in: Any,
+        *,
+        out_start: int = 0,
+        out_end: int | None = None,
+        in_start: int = 0,
+        in_end: int | None = None,
+    ) -> None:
+        """Write then read in one combined transaction (repeated start), as busio does."""
+        from smbus2 import i2c_msg
+
+        data = bytes(_view(buffer_out, out_start, out_end))
+        target = _view(buffer_in, in_start, in_end)
+
+        def transfer() -> None:
+            write = i2c_msg.write(address, data)
+            read = i2c_msg.read(address, len(target))
+            self.smbus.i2c_rdwr(write, read)
+            target[:] = bytes(read)
+
+        self._retry(address, transfer)
+
+    def scan(self) -> list[int]:
+        found = []
+        for address in range(0x03, 0x78):
+            try:
+                self.smbus.write_quick(address)
+            except OSError:
+                continue
+            found.append(address)
+        return found
+
+    def deinit(self) -> None:
+        self.smbus.close()
+
+    def __enter__(self) -> I2CBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.deinit()
+
+    # ---- retry -------------------------------------------------------------------------
+
+    def _retry(self, address: int, transfer: Any) -> None:
+        attempts = 1 + self.retries
+        for attempt in range(1, attempts + 1):
+            try:
+                transfer()
+                return
+            except OSError as exc:
+                if attempt == attempts:
+                    raise I2CFault(
+                        f"I2C bus {self.bus_number} address 0x{address:02x}: "
+                        f"{exc.strerror or exc} (after {attempts} attempts)"
+                    ) from exc
+                time.sleep(RETRY_DELAY_S * attempt)

@@ -1,0 +1,300 @@
+"""A register-level PCA9685 behind the ``smbus2.SMBus`` interface, for tests and dry runs.
+
+It implements what our drivers and Adafruit's touch: MODE1/MODE2, PRE_SCALE (writes ignored
+unless MODE1.SLEEP is set, as on the chip), the 16 LEDn_{ON,OFF}_{L,H} registers with
+auto-increment (MODE1.AI), the ALL_LED registers (a write loads that register of every
+channel; they read back as 0), and the full-on / full-off bits (full-off wins).
+
+With ``state_file`` the registers live in a JSON file shared by every process that opens it:
+each transaction takes an ``flock`` on ``<state_file>.lock``, loads, applies and writes the
+state back with an atomic replace, so a writer killed by SIGKILL leaves either the old or the
+new state, never half of one. ``JETBOT_RT_I2C_EMULATOR=<state file>`` makes
+``jetbot_rt.hal.i2c`` open this instead of ``/dev/i2c-N``: tests and dry runs only.
+
+Fault injection (also through the file, so it reaches another process): ``fail_next`` makes
+the next N transactions raise ``OSError(EREMOTEIO)``; ``absent`` makes the chip not answer.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from smbus2 import i2c_msg
+from smbus2.smbus2 import I2C_M_RD
+
+MODE1 = 0x00
+MODE2 = 0x01
+LED0_ON_L = 0x06
+LAST_LED_REGISTER = 0x45  # LED15_OFF_H
+ALL_LED_ON_L = 0xFA
+ALL_LED_OFF_H = 0xFD
+PRE_SCALE = 0xFE
+
+MODE1_RESTART = 0x80
+MODE1_AI = 0x20
+MODE1_SLEEP = 0x10
+MODE1_ALLCALL = 0x01
+FULL_BIT = 0x10  # bit 4 of LEDn_ON_H (full on) and of LEDn_OFF_H (full off)
+
+OSCILLATOR_HZ = 25_000_000
+CHANNELS = 16
+
+
+def power_on_registers() -> list[int]:
+    """Register values after power-on reset (datasheet table 4)."""
+    regs = [0] * 256
+    regs[MODE1] = MODE1_SLEEP | MODE1_ALLCALL
+    regs[MODE2] = 0x04
+    regs[0x02], regs[0x03], regs[0x04] = 0xE2, 0xE4, 0xE8  # SUBADR1..3
+    regs[0x05] = 0xE0  # ALLCALLADR
+    for channel in range(CHANNELS):
+        regs[LED0_ON_L + 4 * channel + 3] = FULL_BIT  # LEDn_OFF_H: full off
+    regs[PRE_SCALE] = 0x1E  # 200 Hz
+    return regs
+
+
+@dataclass(frozen=True)
+class ChannelOutput:
+    """What one output pin does, decoded from its four registers and MODE1."""
+
+    on_count: int
+    off_count: int
+    full_on: bool
+    full_off: bool
+    duty: float
+    """Effective fraction of the period the output is high: 0 when full-off (which wins over
+    full-on) or while the oscillator sleeps, 1 when full-on, else (off - on) mod 4096 / 4096."""
+
+
+class PCA9685Emulator:
+    """One PCA9685 at ``address`` on an emulated bus; other addresses do not answer."""
+
+    def __init__(self, address: int = 0x60, state_file: str | Path | None = None) -> None:
+        self.address = address
+        self.registers = power_on_registers()
+        self.fail_next = 0
+        self.absent = False
+        self.transactions = 0
+        self.bytes = 0
+        self._pointer = 0
+        self._state_file = Path(state_file) if state_file is not None else None
+        if self._state_file is not None:
+            with self._shared_state():
+                pass  # creates the file with power-on state if it does not exist yet
+
+    # ---- shared state ------------------------------------------------------------------
+
+    @contextmanager
+    def _shared_state(self) -> Iterator[None]:
+        if self._state_file is None:
+            yield
+            return
+        lock_path = self._state_file.with_name(self._state_file.name + ".lock")
+        with open(lock_path, "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            try:
+                if self._state_file.exists():
+                    self._load(json.loads(self._state_file.read_text()))
+                yield
+                self._save()
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+
+    def _load(self, state: dict[str, Any]) -> None:
+        self.address = state["address"]
+        self.registers = list(state["registers"])
+        self.fail_next = state.get("fail_next", 0)
+        self.absent = state.get("absent", False)
+        self.transactions = state.get("transactions", 0)
+        self.bytes = state.get("bytes", 0)
+        self._pointer = state.get("pointer", 0)
+
+    def _save(self) -> None:
+        assert self._state_file is not None
+        state = {
+            "address": self.address,
+            "registers": self.registers,
+            "fail_next": self.fail_next,
+            "absent": self.absent,
+            "transactions": self.transactions,
+            "bytes": self.bytes,
+            "pointer": self._pointer,
+        }
+        fd, tmp = tempfile.mkstemp(dir=self._state_file.parent, prefix=".pca9685-")
+        with os.fdopen(fd, "w") as out:
+            json.dump(state, out)
+        os.replace(tmp, self._state_file)
+
+    def refresh(self) -> PCA9685Emulator:
+        """Re-read the shared state file (what another process wrote); returns self."""
+        with self._shared_state():
+            pass
+        return self
+
+    def update(self, **fields: Any) -> None:
+        """Set fault-injection fields (``fail_next``, ``absent``) in the shared state."""
+        with self._shared_state():
+            for name, value in fields.items():
+                if name not in ("fail_next", "absent"):
+                    raise ValueError(f"not a fault-injection field: {name}")
+                setattr(self, name, value)
+
+    # ---- the bus transactions (smbus2.SMBus interface) ---------------------------------
+
+    def _transaction(self, address: int) -> None:
+        """Count one bus transaction and raise the OSError a real adapter would."""
+        self.transactions += 1
+        if self.fail_next > 0:
+            self.fail_next -= 1
+            raise OSError(errno.EREMOTEIO, os.strerror(errno.EREMOTEIO))
+        if self.absent or address != self.address:
+            raise OSError(errno.EREMOTEIO, os.strerror(errno.EREMOTEIO))
+
+    def i2c_rdwr(self, *messages: i2c_msg) -> None:
+        with self._shared_state():
+            self._transaction(messages[0].addr if messages else self.address)
+            for message in messages:
+                if message.addr != self.address or self.absent:
+                    raise OSError(errno.EREMOTEIO, os.strerror(errno.EREMOTEIO))
+                if message.flags & I2C_M_RD:
+                    data = self._read(message.len)
+                    for i, value in enumerate(data):
+                        message.buf[i] = bytes((value,))
+                    self.bytes += message.len
+                else:
+                    payload = bytes(message)
+                    self._write(payload)
+                    self.bytes += len(payload)
+
+    def write_quick(self, i2c_addr: int, force: bool | None = None) -> None:
+        with self._shared_state():
+            self._transaction(i2c_addr)
+
+    def write_byte_data(
+        self, i2c_addr: int, register: int, value: int, force: bool | None = None
+    ) -> None:
+        with self._shared_state():
+            self._transaction(i2c_addr)
+            self._write(bytes((register, value)))
+            self.bytes += 2
+
+    def read_byte_data(self, i2c_addr: int, register: int, force: bool | None = None) -> int:
+        with self._shared_state():
+            self._transaction(i2c_addr)
+            self._pointer = register
+            self.bytes += 2
+            return self._read(1)[0]
+
+    def write_i2c_block_data(
+        self, i2c_addr: int, register: int, data: Sequence[int], force: bool | None = None
+    ) -> None:
+        with self._shared_state():
+            self._transaction(i2c_addr)
+            self._write(bytes((register, *data)))
+            self.bytes += 1 + len(data)
+
+    def read_i2c_block_data(
+        self, i2c_addr: int, register: int, length: int, force: bool | None = None
+    ) -> list[int]:
+        with self._shared_state():
+            self._transaction(i2c_addr)
+            self._pointer = register
+            self.bytes += 1 + length
+            return self._read(length)
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> PCA9685Emulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- register semantics ------------------------------------------------------------
+
+    def _next(self, register: int) -> int:
+        if not self.registers[MODE1] & MODE1_AI:
+            return register
+        if register in (LAST_LED_REGISTER, 0xFF):
+            return 0x00
+        return register + 1
+
+    def _write(self, payload: bytes) -> None:
+        if not payload:
+            return
+        self._pointer = payload[0]
+        for value in payload[1:]:
+            self._store(self._pointer, value)
+            self._pointer = self._next(self._pointer)
+
+    def _read(self, length: int) -> list[int]:
+        values = []
+        for _ in range(length):
+            register = self._pointer
+            values.append(0 if ALL_LED_ON_L <= register <= ALL_LED_OFF_H else
+                          self.registers[register])
+            self._pointer = self._next(register)
+        return values
+
+    def _store(self, register: int, value: int) -> None:
+        regs = self.registers
+        if register == MODE1:
+            was_active = not regs[MODE1] & MODE1_SLEEP
+            restart = regs[MODE1] & MODE1_RESTART
+            if value & MODE1_RESTART:
+                restart = 0  # writing 1 clears RESTART
+            if value & MODE1_SLEEP and was_active:
+                restart = MODE1_RESTART  # PWM was running when put to sleep
+            regs[MODE1] = (value & ~MODE1_RESTART & 0xFF) | restart
+        elif register == PRE_SCALE:
+            if regs[MODE1] & MODE1_SLEEP:
+                regs[PRE_SCALE] = max(value, 3)  # the chip clamps values below 3 to 3
+        elif ALL_LED_ON_L <= register <= ALL_LED_OFF_H:
+            offset = register - ALL_LED_ON_L
+            for channel in range(CHANNELS):
+                regs[LED0_ON_L + 4 * channel + offset] = value
+        elif register <= LAST_LED_REGISTER or register == 0xFF:
+            regs[register] = value
+        # 0x46..0xF9 are reserved: writes are ignored
+
+    # ---- decoded views for tests and benchmarks ----------------------------------------
+
+    @property
+    def sleeping(self) -> bool:
+        return bool(self.registers[MODE1] & MODE1_SLEEP)
+
+    @property
+    def frequency(self) -> float:
+        return OSCILLATOR_HZ / 4096 / (self.registers[PRE_SCALE] + 1)
+
+    def channel(self, index: int) -> ChannelOutput:
+        base = LED0_ON_L + 4 * index
+        on_l, on_h, off_l, off_h = self.registers[base : base + 4]
+        on_count = ((on_h & 0x0F) << 8) | on_l
+        off_count = ((off_h & 0x0F) << 8) | off_l
+        full_on = bool(on_h & FULL_BIT)
+        full_off = bool(off_h & FULL_BIT)
+        if full_off or self.sleeping:
+            duty = 0.0
+        elif full_on:
+            duty = 1.0
+        else:
+            duty = ((off_count - on_count) % 4096) / 4096
+        return ChannelOutput(on_count, off_count, full_on, full_off, duty)
+
+    def duties(self) -> list[float]:
+        """Effective duty of all 16 outputs."""
+        return [self.channel(i).duty for i in range(CHANNELS)]
+
+    def all_off(self) -> bool:
+        return all(duty == 0.0 for duty in self.duties())

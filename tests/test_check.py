@@ -1,0 +1,88 @@
+"""``jetbot-rt check`` as a subprocess: emulated board, videotestsrc camera, a real ONNX model."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import policy_models
+import pytest
+
+from jetbot_rt.hal.i2c import EMULATOR_ENV
+from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+
+
+@pytest.fixture
+def robot(tmp_path) -> Path:
+    policy_models.constant(tmp_path / "policy.onnx", (0.5, 0.5), size=96)
+    return tmp_path
+
+
+def write_config(robot: Path, source: str, fps: float = 30) -> Path:
+    config = robot / "robot.toml"
+    config.write_text(f'[camera]\nsource = "{source}"\nfps = {fps}\nstart_timeout = 5\n'
+                      "[motors]\ni2c_retries = 1\n")
+    return config
+
+
+def check(robot: Path, config: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, **{EMULATOR_ENV: str(robot / "chip.json"),
+                              "JETBOT_RT_RUNTIME_DIR": str(robot / "run")})
+    return subprocess.run(
+        [sys.executable, "-m", "jetbot_rt.cli", "check", "--config", str(config),
+         "--policy", str(robot / "policy.onnx"), "--frames", "10", *args],
+        capture_output=True, text=True, timeout=60, env=env,
+    )
+
+
+def rows(output: str) -> dict[str, str]:
+    return {line.split()[0]: line for line in output.splitlines() if line.strip()}
+
+
+def test_all_rows_pass_and_the_motors_never_move(robot) -> None:
+    chip = PCA9685Emulator(0x60, state_file=robot / "chip.json")
+    before = list(chip.registers)
+    config = write_config(robot, "gst:videotestsrc is-live=true pattern=blue")
+    result = check(robot, config)
+    assert result.returncode == 0, result.stdout + result.stderr
+    table = rows(result.stdout)
+    assert "PCA9685 answers on I2C bus 1 at 0x60" in table["motor"]
+    assert "layout waveshare" in table["motor"]
+    assert "10 frames 96x96 RGB" in table["camera"]  # the policy's input size
+    assert "mean colour R 0 G 0 B 255" in table["camera"]
+    assert "input obs NHWC 96x96 float32 RGB 0-255; action output mu" in table["policy"]
+    assert "CPUExecutionProvider" in table["providers"]
+    assert all(" ok " in line for line in table.values())
+    assert chip.refresh().registers == before  # only reads: not one register changed
+
+
+def test_spin_pulses_and_ends_with_everything_off(robot) -> None:
+    chip = PCA9685Emulator(0x60, state_file=robot / "chip.json")
+    config = write_config(robot, "gst:videotestsrc is-live=true")
+    result = check(robot, config, "--spin")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "spin" in rows(result.stdout)
+    chip.refresh()
+    assert not chip.sleeping  # the board was set up and driven
+    assert chip.all_off()
+
+
+def test_failing_rows_make_a_non_zero_exit(robot) -> None:
+    PCA9685Emulator(0x60, state_file=robot / "chip.json").update(absent=True)
+    config = write_config(robot, "gst:nosuchsrc")
+    result = check(robot, config)
+    assert result.returncode == 1
+    table = rows(result.stdout)
+    assert "FAIL" in table["motor"] and "0x60" in table["motor"]
+    assert "FAIL" in table["camera"] and 'no element "nosuchsrc"' in table["camera"]
+    assert " ok " in table["policy"]
+
+
+def test_a_camera_slower_than_configured_fails(robot) -> None:
+    config = write_config(robot, "gst:videotestsrc is-live=true ! video/x-raw,framerate=10/1",
+                          fps=30)
+    result = check(robot, config)
+    assert result.returncode == 1
+    assert "slower than 30 fps" in rows(result.stdout)["camera"]

@@ -1,0 +1,87 @@
+"""The smbus2-backed bus: busio.I2C's interface, retries, faults, opening the emulator."""
+
+from __future__ import annotations
+
+import pytest
+
+from jetbot_rt.errors import Fault, UsageError
+from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus, I2CFault, open_smbus
+from jetbot_rt.hal.pca9685_emulator import LED0_ON_L, MODE1, PCA9685Emulator
+
+ADDR = 0x60
+
+
+@pytest.fixture
+def chip() -> PCA9685Emulator:
+    return PCA9685Emulator(ADDR)
+
+
+def test_transfers_honour_start_and_end(chip) -> None:
+    bus = I2CBus(chip, 1)
+    bus.writeto(ADDR, bytearray(b"\xff\x00\x20\xff"), start=1, end=3)  # MODE1 <- 0x20
+    assert chip.registers[MODE1] == 0x20
+    bus.writeto(ADDR, bytes((LED0_ON_L, 1, 2, 3, 4)))
+    into = bytearray(6)
+    bus.writeto_then_readfrom(ADDR, bytes((0xAA, LED0_ON_L)), into, out_start=1, in_start=1,
+                              in_end=5)
+    assert into == bytearray(b"\x00\x01\x02\x03\x04\x00")
+    bus.writeto(ADDR, bytes((LED0_ON_L + 2,)))
+    bus.readfrom_into(ADDR, into)
+    assert into[:2] == b"\x03\x04"
+
+
+def test_lock_is_exclusive(chip) -> None:
+    bus = I2CBus(chip, 1)
+    assert bus.try_lock()
+    assert not bus.try_lock()
+    bus.unlock()
+    assert bus.try_lock()
+
+
+def test_transient_errors_are_retried(chip) -> None:
+    bus = I2CBus(chip, 1, retries=3)
+    chip.update(fail_next=3)
+    bus.writeto(ADDR, bytes((MODE1, 0x20)))
+    assert chip.registers[MODE1] == 0x20
+    assert chip.transactions == 4
+
+
+def test_a_persistent_error_is_a_fault_naming_bus_and_address(chip) -> None:
+    bus = I2CBus(chip, 7, retries=2)
+    chip.update(fail_next=3)
+    with pytest.raises(I2CFault, match=r"I2C bus 7 address 0x60: .*after 3 attempts") as info:
+        bus.writeto(ADDR, bytes((MODE1, 0x20)))
+    assert isinstance(info.value, Fault)
+    assert chip.registers[MODE1] == 0x11  # nothing got through
+
+
+def test_zero_length_write_probes_the_address(chip) -> None:
+    bus = I2CBus(chip, 1, retries=0)
+    bus.writeto(ADDR, b"")
+    with pytest.raises(I2CFault, match="0x41"):
+        bus.writeto(0x41, b"")
+    assert I2CBus(chip, 1).scan() == [ADDR]
+
+
+def test_adafruit_pca9685_runs_on_this_bus(chip) -> None:
+    from adafruit_pca9685 import PCA9685
+
+    pca = PCA9685(I2CBus(chip, 1), address=ADDR)
+    pca.frequency = 1000
+    pca.channels[5].duty_cycle = 0x8000
+    assert chip.channel(5).duty == 0.5
+    assert chip.frequency == pytest.approx(1000, rel=0.05)
+    assert pca.channels[5].duty_cycle == 0x8000
+
+
+def test_environment_selects_the_emulator(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv(EMULATOR_ENV, str(tmp_path / "chip.json"))
+    bus = I2CBus.open(1, emulated_address=0x40)
+    bus.writeto(0x40, bytes((MODE1, 0x20)))
+    assert PCA9685Emulator(state_file=tmp_path / "chip.json").registers[MODE1] == 0x20
+
+
+def test_missing_device_node_is_a_usage_error(monkeypatch) -> None:
+    monkeypatch.delenv(EMULATOR_ENV, raising=False)
+    with pytest.raises(UsageError, match="/dev/i2c-250"):
+        open_smbus(250)

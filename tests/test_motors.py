@@ -1,0 +1,176 @@
+"""Both motor layouts on the emulated PCA9685: the chip's outputs after each command."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import pytest
+
+from jetbot_rt.config import MotorsConfig
+from jetbot_rt.errors import Fault, UsageError
+from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus, I2CFault
+from jetbot_rt.hal.motors import MotorHatDrive, WaveshareDrive, hardware_stop, open_drive
+from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+
+ADDR = 0x60
+STEP = 1 / 4096  # one PCA9685 count
+
+
+def outputs(chip: PCA9685Emulator, channels: tuple[int, ...]) -> list[float]:
+    return [chip.channel(c).duty for c in channels]
+
+
+@pytest.fixture
+def chip() -> PCA9685Emulator:
+    return PCA9685Emulator(ADDR)
+
+
+@pytest.fixture
+def waveshare(chip) -> WaveshareDrive:
+    return WaveshareDrive(I2CBus(chip, 1), ADDR, 1600.0)
+
+
+def motorhat(chip: PCA9685Emulator, left: int = 1, right: int = 2) -> MotorHatDrive:
+    return MotorHatDrive(I2CBus(chip, 1), ADDR, 1600.0, left, right)
+
+
+# ---- waveshare: left (1, 0), right (2, 3) ------------------------------------------------
+
+
+def test_waveshare_setup_wakes_the_chip_with_auto_increment_and_all_off(chip, waveshare) -> None:
+    assert not chip.sleeping
+    assert chip.registers[0x00] & 0x20
+    assert chip.frequency == pytest.approx(1526, abs=1)  # 1600 Hz rounds to the chip's maximum
+    assert chip.all_off()
+
+
+def test_waveshare_forward_reverse_zero(chip, waveshare) -> None:
+    waveshare.write(0.5, 0.25)
+    assert outputs(chip, (1, 0, 2, 3)) == [0.5, 0.0, 0.25, 0.0]
+    waveshare.write(-0.5, -0.25)
+    assert outputs(chip, (1, 0, 2, 3)) == [0.0, 0.5, 0.0, 0.25]
+    assert chip.channel(1).full_off and chip.channel(2).full_off
+    waveshare.write(0.0, 0.0)
+    assert chip.all_off()
+    waveshare.write(1.0, -1.0)
+    assert chip.channel(1).full_on and chip.channel(3).full_on
+    assert outputs(chip, (1, 0, 2, 3)) == [1.0, 0.0, 0.0, 1.0]
+
+
+def test_waveshare_tick_is_one_block_write(chip, waveshare) -> None:
+    before = chip.transactions
+    waveshare.write(0.3, -0.7)
+    assert chip.transactions - before == 1
+    assert outputs(chip, (1, 3)) == pytest.approx([0.3, 0.7], abs=STEP)
+    assert chip.duties()[4:] == [0.0] * 12
+
+
+def test_waveshare_refuses_non_finite_duties(chip, waveshare) -> None:
+    waveshare.write(0.4, 0.4)
+    with pytest.raises(Fault):
+        waveshare.write(math.nan, 0.0)
+    assert outputs(chip, (1, 2)) == pytest.approx([0.4, 0.4], abs=STEP)
+
+
+def test_hardware_stop_is_one_two_byte_write_that_turns_everything_off(chip, waveshare) -> None:
+    chip.registers[0x06 + 4 * 9 + 1] = 0x10  # some other channel full-on
+    waveshare.write(0.8, -0.8)
+    transactions, sent = chip.transactions, chip.bytes
+    waveshare.stop()
+    assert (chip.transactions - transactions, chip.bytes - sent) == (1, 2)
+    assert chip.all_off()
+    waveshare.write(0.2, 0.2)  # a later write drives again
+    assert outputs(chip, (1, 2)) == pytest.approx([0.2, 0.2], abs=STEP)
+
+
+def test_transient_i2c_errors_are_absorbed_persistent_ones_fault(chip, waveshare) -> None:
+    chip.update(fail_next=2)
+    waveshare.write(0.5, 0.5)
+    assert outputs(chip, (1, 2)) == [0.5, 0.5]
+    chip.update(fail_next=100)
+    with pytest.raises(I2CFault, match="bus 1 address 0x60"):
+        waveshare.write(-0.5, -0.5)
+    assert outputs(chip, (1, 2)) == [0.5, 0.5]  # the chip holds the last good write
+    chip.update(fail_next=0)
+    waveshare.stop()
+    assert chip.all_off()
+
+
+# ---- adafruit_motorhat via MotorKit -----------------------------------------------------
+# motor1: PWM 8, IN2 9, IN1 10 -> forward on 9; motor2: PWM 13, IN2 11, IN1 12 -> forward on 11
+
+
+def test_motorhat_forward_reverse_zero(chip) -> None:
+    drive = motorhat(chip)
+    assert chip.channel(8).full_on and chip.channel(13).full_on  # TB6612 PWM inputs
+    drive.write(0.5, 0.25)
+    assert outputs(chip, (9, 10, 11, 12)) == pytest.approx([0.5, 0, 0.25, 0], abs=STEP)
+    drive.write(-0.5, -0.25)
+    assert outputs(chip, (9, 10, 11, 12)) == pytest.approx([0, 0.5, 0, 0.25], abs=STEP)
+    drive.write(0.0, 0.0)
+    assert outputs(chip, (9, 10, 11, 12)) == [0.0] * 4
+
+
+def test_motorhat_motor_choice_and_stop_then_drive_again(chip) -> None:
+    drive = motorhat(chip, left=3, right=4)  # motor3: 2 (PWM), 3, 4; motor4: 7 (PWM), 5, 6
+    drive.write(0.5, -0.5)
+    assert outputs(chip, (3, 4, 5, 6)) == pytest.approx([0.5, 0, 0, 0.5], abs=STEP)
+    drive.stop()
+    assert chip.all_off()
+    drive.write(0.25, 0.25)  # the PWM inputs the hardware stop cleared come back
+    assert chip.channel(2).full_on and chip.channel(7).full_on
+    assert outputs(chip, (3, 5)) == pytest.approx([0.25, 0.25], abs=STEP)
+
+
+def test_motorhat_same_motor_twice_is_a_usage_error(chip) -> None:
+    with pytest.raises(UsageError, match="left_motor and right_motor"):
+        motorhat(chip, left=2, right=2)
+
+
+def test_hardware_stop_function_on_a_bare_bus(chip) -> None:
+    motorhat(chip).write(1.0, 1.0)
+    hardware_stop(I2CBus(chip, 1), ADDR)
+    assert chip.all_off()
+
+
+# ---- open_drive from config --------------------------------------------------------------
+
+
+def test_open_drive_builds_the_configured_layout(tmp_path, monkeypatch) -> None:
+    state = tmp_path / "chip.json"
+    monkeypatch.setenv(EMULATOR_ENV, str(state))
+    drive = open_drive(MotorsConfig(layout="adafruit_motorhat"))
+    assert isinstance(drive, MotorHatDrive)
+    drive.write(0.5, 0.0)
+    assert PCA9685Emulator(state_file=state).channel(9).duty == pytest.approx(0.5, abs=STEP)
+
+
+def test_open_drive_without_a_board_is_a_usage_error(tmp_path, monkeypatch) -> None:
+    state = tmp_path / "chip.json"
+    PCA9685Emulator(0x40, state_file=state)  # the board answers at another address
+    monkeypatch.setenv(EMULATOR_ENV, str(state))
+    with pytest.raises(UsageError, match=r"no motor board \(waveshare\) .* bus 1 at address 0x60"):
+        open_drive(MotorsConfig(i2c_retries=0))
+
+
+def test_motorkit_imports_where_blinka_does_not_know_the_board(tmp_path) -> None:
+    fake = tmp_path / "fake"
+    fake.mkdir()
+    for name in ("board", "busio"):
+        (fake / f"{name}.py").write_text('raise NotImplementedError("Board not supported")\n')
+    code = (
+        "from jetbot_rt.hal.i2c import I2CBus\n"
+        "from jetbot_rt.hal.motors import MotorHatDrive\n"
+        "from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator\n"
+        "chip = PCA9685Emulator(0x60)\n"
+        "MotorHatDrive(I2CBus(chip, 1), 0x60, 1600.0, 1, 2).write(1.0, 0.0)\n"
+        "print(chip.channel(9).duty)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+        env={"PYTHONPATH": str(fake), "PATH": "/usr/bin:/bin"},
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "1.0"

@@ -1,0 +1,155 @@
+"""The PCA9685 emulator itself: the register behaviour the motor tests rely on."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from smbus2 import i2c_msg
+
+from jetbot_rt.hal.pca9685_emulator import (
+    ALL_LED_OFF_H,
+    ALL_LED_ON_L,
+    LED0_ON_L,
+    MODE1,
+    PRE_SCALE,
+    PCA9685Emulator,
+)
+
+ADDR = 0x60
+
+
+def write(chip: PCA9685Emulator, *payload: int) -> None:
+    chip.i2c_rdwr(i2c_msg.write(ADDR, bytes(payload)))
+
+
+def read(chip: PCA9685Emulator, register: int, length: int) -> bytes:
+    out, into = i2c_msg.write(ADDR, bytes((register,))), i2c_msg.read(ADDR, length)
+    chip.i2c_rdwr(out, into)
+    return bytes(into)
+
+
+def test_power_on_state_is_asleep_and_all_off() -> None:
+    chip = PCA9685Emulator(ADDR)
+    assert read(chip, MODE1, 1) == b"\x11"
+    assert chip.sleeping
+    assert chip.registers[PRE_SCALE] == 0x1E
+    assert chip.all_off()
+    assert all(chip.channel(i).full_off for i in range(16))
+
+
+def test_prescale_is_writable_only_in_sleep() -> None:
+    chip = PCA9685Emulator(ADDR)
+    write(chip, MODE1, 0x00)  # wake
+    write(chip, PRE_SCALE, 5)
+    assert chip.registers[PRE_SCALE] == 0x1E
+    write(chip, MODE1, 0x10)  # sleep
+    write(chip, PRE_SCALE, 5)
+    assert chip.registers[PRE_SCALE] == 5
+    assert chip.frequency == pytest.approx(25e6 / 4096 / 6)
+
+
+def test_auto_increment_spreads_a_block_write_over_registers() -> None:
+    chip = PCA9685Emulator(ADDR)
+    write(chip, MODE1, 0x20)  # awake, AI
+    write(chip, LED0_ON_L + 4, 0x00, 0x00, 0x00, 0x08)  # channel 1: off at 0x800
+    assert chip.channel(1).duty == 0.5
+    assert read(chip, LED0_ON_L + 4, 4) == b"\x00\x00\x00\x08"
+
+
+def test_without_auto_increment_every_byte_lands_on_the_same_register() -> None:
+    chip = PCA9685Emulator(ADDR)
+    write(chip, MODE1, 0x00)  # awake, AI off
+    write(chip, LED0_ON_L + 2, 0x11, 0x22, 0x33)
+    assert chip.registers[LED0_ON_L + 2] == 0x33
+    assert chip.registers[LED0_ON_L + 3] == 0x10  # untouched: still full-off
+
+
+def test_all_led_registers_load_every_channel_and_read_back_zero() -> None:
+    chip = PCA9685Emulator(ADDR)
+    write(chip, MODE1, 0x20)
+    write(chip, ALL_LED_ON_L, 0x00, 0x00, 0x00, 0x04)  # every channel 25 %
+    assert chip.duties() == [0.25] * 16
+    assert read(chip, ALL_LED_ON_L, 4) == b"\x00\x00\x00\x00"
+    write(chip, ALL_LED_OFF_H, 0x10)
+    assert chip.all_off()
+
+
+def test_full_off_wins_over_full_on() -> None:
+    chip = PCA9685Emulator(ADDR)
+    write(chip, MODE1, 0x20)
+    write(chip, LED0_ON_L, 0x00, 0x10, 0x00, 0x00)
+    assert chip.channel(0).duty == 1.0
+    write(chip, LED0_ON_L, 0x00, 0x10, 0x00, 0x10)
+    assert chip.channel(0).full_on and chip.channel(0).full_off
+    assert chip.channel(0).duty == 0.0
+
+
+def test_outputs_are_off_while_the_oscillator_sleeps() -> None:
+    chip = PCA9685Emulator(ADDR)
+    write(chip, MODE1, 0x20)
+    write(chip, LED0_ON_L, 0x00, 0x10, 0x00, 0x00)
+    write(chip, MODE1, 0x30)
+    assert chip.channel(0).duty == 0.0
+    assert chip.registers[MODE1] & 0x80  # RESTART: PWM was running when put to sleep
+
+
+def test_injected_faults_and_absent_chip_raise_oserror() -> None:
+    chip = PCA9685Emulator(ADDR)
+    chip.update(fail_next=2)
+    for _ in range(2):
+        with pytest.raises(OSError):
+            write(chip, MODE1, 0x20)
+    write(chip, MODE1, 0x20)
+    assert chip.registers[MODE1] == 0x20
+    chip.update(absent=True)
+    with pytest.raises(OSError):
+        chip.write_quick(ADDR)
+    with pytest.raises(OSError):
+        PCA9685Emulator(ADDR).write_quick(0x40)  # nobody at that address
+
+
+def test_two_instances_share_one_chip_through_the_state_file(tmp_path) -> None:
+    state = tmp_path / "chip.json"
+    writer = PCA9685Emulator(ADDR, state_file=state)
+    reader = PCA9685Emulator(ADDR, state_file=state)
+    write(writer, MODE1, 0x20)
+    write(writer, LED0_ON_L + 8, 0x00, 0x00, 0x00, 0x02)
+    assert reader.refresh().channel(2).duty == 0.125
+    reader.update(fail_next=1)
+    with pytest.raises(OSError):
+        write(writer, MODE1, 0x20)
+
+
+WRITER = """
+import sys
+from smbus2 import i2c_msg
+from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+chip = PCA9685Emulator(0x60, state_file=sys.argv[1])
+chip.i2c_rdwr(i2c_msg.write(0x60, bytes((0x00, 0x20))))
+print("ready", flush=True)
+n = 0
+while True:
+    n = (n + 1) % 4000 + 16
+    chip.i2c_rdwr(i2c_msg.write(0x60, bytes((0x06, 0, 0, n & 0xFF, n >> 8))))
+"""
+
+
+def test_state_file_survives_sigkill_of_a_writer(tmp_path) -> None:
+    state = tmp_path / "chip.json"
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(state)], stdout=subprocess.PIPE)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == b"ready\n"
+        time.sleep(0.3)  # many transactions in flight
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    json.loads(state.read_text())  # whole, not half-written
+    chip = PCA9685Emulator(ADDR, state_file=state)  # the lock was released by the kernel
+    write(chip, LED0_ON_L, 0x00, 0x00, 0x00, 0x10)
+    assert chip.refresh().channel(0).full_off
+    assert chip.transactions > 10

@@ -1,0 +1,165 @@
+"""The control socket and ``jetbot-rt stop`` (as a subprocess, on the emulated board)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import stat
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from jetbot_rt.control import ControlServer, default_socket_path, request_stop
+from jetbot_rt.errors import UsageError
+from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus
+from jetbot_rt.hal.motors import WaveshareDrive
+from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+
+# ---- control channel ---------------------------------------------------------------------
+
+
+@pytest.fixture
+def sock_path(tmp_path) -> Path:
+    return tmp_path / "run" / "control.sock"
+
+
+def test_stop_request_reaches_the_runtime_with_the_callers_pid(sock_path) -> None:
+    reasons: list[str] = []
+    server = ControlServer(reasons.append, sock_path)
+    server.start()
+    try:
+        assert stat.S_IMODE(sock_path.stat().st_mode) == 0o600
+        assert stat.S_IMODE(sock_path.parent.stat().st_mode) == 0o700
+        assert request_stop(sock_path)
+        assert reasons == [f"jetbot-rt stop from pid {os.getpid()}"]
+    finally:
+        server.close()
+    assert not sock_path.exists()
+    assert not request_stop(sock_path)
+
+
+def test_no_runtime_means_no_acknowledgement(sock_path) -> None:
+    t0 = time.monotonic()
+    assert not request_stop(sock_path)
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_a_stale_socket_file_is_replaced(sock_path) -> None:
+    sock_path.parent.mkdir(mode=0o700)
+    dead = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    dead.bind(str(sock_path))
+    dead.close()  # the file stays, nobody listens: a runtime that died
+    reasons: list[str] = []
+    server = ControlServer(reasons.append, sock_path)
+    server.start()
+    try:
+        assert request_stop(sock_path)
+        assert len(reasons) == 1
+    finally:
+        server.close()
+
+
+def test_a_second_live_runtime_is_refused(sock_path) -> None:
+    first = ControlServer(lambda _r: None, sock_path)
+    first.start()
+    try:
+        with pytest.raises(UsageError, match="another jetbot-rt is running"):
+            ControlServer(lambda _r: None, sock_path).start()
+        assert request_stop(sock_path)  # the first still serves
+    finally:
+        first.close()
+
+
+def test_unknown_requests_get_an_error_and_do_not_stop(sock_path) -> None:
+    reasons: list[str] = []
+    server = ControlServer(reasons.append, sock_path)
+    server.start()
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as client:
+            client.connect(str(sock_path))
+            client.sendall(b"go\n")
+            assert client.recv(64).startswith(b"error")
+        assert reasons == []
+    finally:
+        server.close()
+
+
+def test_default_socket_path_precedence(monkeypatch) -> None:
+    for name in ("JETBOT_RT_RUNTIME_DIR", "RUNTIME_DIRECTORY", "XDG_RUNTIME_DIR"):
+        monkeypatch.delenv(name, raising=False)
+    assert default_socket_path() == Path(f"/tmp/jetbot-rt-{os.getuid()}/control.sock")
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/7")
+    assert default_socket_path() == Path("/run/user/7/jetbot-rt/control.sock")
+    monkeypatch.setenv("RUNTIME_DIRECTORY", "/run/jetbot-rt:/run/other")
+    assert default_socket_path() == Path("/run/jetbot-rt/control.sock")
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", "/x")
+    assert default_socket_path() == Path("/x/control.sock")
+
+
+# ---- jetbot-rt stop ----------------------------------------------------------------------
+
+
+def stop_command(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, **{EMULATOR_ENV: str(tmp_path / "chip.json"),
+                              "JETBOT_RT_RUNTIME_DIR": str(tmp_path / "run")})
+    return subprocess.run(
+        [sys.executable, "-m", "jetbot_rt.cli", "stop", *args],
+        capture_output=True, text=True, timeout=30, env=env,
+    )
+
+
+def test_stop_turns_a_driven_board_off_without_a_runtime(tmp_path) -> None:
+    chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+    WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0).write(0.6, -0.6)
+    assert not chip.refresh().all_off()
+    t0 = time.monotonic()
+    result = stop_command(tmp_path)
+    elapsed = time.monotonic() - t0
+    assert result.returncode == 0, result.stderr
+    assert "motor outputs off" in result.stdout
+    assert chip.refresh().all_off()
+    assert elapsed < 10.0  # generous: a whole interpreter start on a loaded 2-core machine
+
+
+def test_stop_asks_a_running_runtime_first(tmp_path) -> None:
+    tripped = threading.Event()
+    server = ControlServer(lambda _reason: tripped.set(), tmp_path / "run" / "control.sock")
+    server.start()
+    try:
+        result = stop_command(tmp_path)
+    finally:
+        server.close()
+    assert result.returncode == 0, result.stderr
+    assert tripped.is_set()
+    assert "latched its safe stop" in result.stdout
+
+
+def test_stop_fails_clearly_when_the_board_does_not_answer(tmp_path) -> None:
+    PCA9685Emulator(0x60, state_file=tmp_path / "chip.json").update(absent=True)
+    config = tmp_path / "robot.toml"
+    config.write_text("[motors]\ni2c_retries = 1\n")
+    result = stop_command(tmp_path, "--config", str(config))
+    assert result.returncode == 1
+    assert "motors NOT confirmed off (I2C bus 1 address 0x60)" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_stop_loads_no_camera_policy_or_torch(tmp_path) -> None:
+    code = (
+        "import sys\n"
+        "from jetbot_rt.cli import main\n"
+        "assert main(['stop']) == 0\n"
+        "heavy = {'torch', 'onnxruntime', 'cv2', 'pybullet', 'jetbot_rt.hal.gst_camera',\n"
+        "         'jetbot_rt.policy', 'adafruit_motorkit'}\n"
+        "print(sorted(heavy & set(sys.modules)))\n"
+    )
+    env = dict(os.environ, **{EMULATOR_ENV: str(tmp_path / "chip.json"),
+                              "JETBOT_RT_RUNTIME_DIR": str(tmp_path / "run")})
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=30, env=env)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"
