@@ -1,0 +1,95 @@
+"""The ``sim`` backend: a ``Camera`` and a ``Drive`` over one ``JetbotWorld``.
+
+The runtime calls ``Backend.advance(dt)`` once per tick, after the drive write: the world
+steps one control period and the camera renders the frame the next tick will read. The
+camera's fault injection (``[sim] camera_stall_after``, ``[sim] blackout``) runs on simulated
+time, so a run with faults replays identically.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from jetbot_rt.errors import Fault
+from jetbot_rt.hal.base import Backend, Camera, Drive, Frame
+from jetbot_rt.sim.world import JetbotWorld
+
+if TYPE_CHECKING:
+    from jetbot_rt.config import Config, SimConfig
+    from jetbot_rt.hal.registry import BackendOptions
+
+
+class SimCamera(Camera):
+    """The robot's camera. ``read()`` returns the newest rendered frame without rendering;
+    ``capture()`` (called by the backend after each world step) renders the next one."""
+
+    def __init__(self, world: JetbotWorld, sim: SimConfig) -> None:
+        self._world = world
+        self._stall_after = sim.camera_stall_after
+        self._blackout = sim.blackout
+        self._frame: Frame | None = None
+        self._count = 0
+        self._running = False
+
+    def start(self) -> None:
+        self._running = True
+        self.capture()
+
+    def capture(self) -> None:
+        """Render a new frame at the world's current state, unless a fault says otherwise."""
+        if not self._running:
+            return
+        t = self._world.sim_time
+        if self._frame is not None and self._stall_after is not None and t > self._stall_after:
+            return  # stalled: the last frame stays, and goes stale
+        if self._blackout is not None and self._blackout[0] <= t <= self._blackout[1]:
+            image = np.zeros((self._world.image_size[1], self._world.image_size[0], 3), np.uint8)
+        else:
+            image = self._world.render()
+        self._count += 1
+        self._frame = Frame(image, time.monotonic(), self._count)
+
+    def read(self) -> Frame | None:
+        return self._frame if self._running else None
+
+    def stop(self) -> None:
+        self._running = False
+
+
+class SimDrive(Drive):
+    """Duties go to the world's motor model; they take effect at the next world step."""
+
+    def __init__(self, world: JetbotWorld) -> None:
+        self._world = world
+
+    def write(self, left: float, right: float) -> None:
+        if not (math.isfinite(left) and math.isfinite(right)):
+            raise Fault(f"sim drive: non-finite duty ({left}, {right})")
+        self._world.set_duty(left, right)
+
+    def stop(self) -> None:
+        self._world.set_duty(0.0, 0.0)
+
+
+def build_backend(config: Config, options: BackendOptions) -> Backend:
+    """The world in its seed scene, rendering at the policy's frame size (224x224 default)."""
+    world = JetbotWorld(config.sim, gui=options.gui, image_size=tuple(options.frame_size))
+    camera = SimCamera(world, config.sim)
+    drive = SimDrive(world)
+
+    def advance(dt: float) -> None:
+        world.step(dt)
+        camera.capture()
+
+    def telemetry() -> dict[str, object]:
+        return {"pose": list(world.robot_pose()), "sim_time": world.sim_time}
+
+    def close() -> None:
+        camera.stop()
+        world.close()
+
+    return Backend(camera=camera, drive=drive, advance=advance, close=close, telemetry=telemetry)

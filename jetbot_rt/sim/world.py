@@ -1,0 +1,241 @@
+"""The simulated JetBot in its room: one PyBullet client per world, a modelled motor board,
+and the robot's camera rendered with PyBullet's software renderer (headless, deterministic)."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from importlib import resources
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from jetbot_rt.errors import UsageError
+from jetbot_rt.sim.quiet import import_pybullet
+
+p = import_pybullet()
+
+if TYPE_CHECKING:
+    from jetbot_rt.config import SimConfig
+
+ASSETS = resources.files("jetbot_rt.sim") / "assets"
+
+WHEEL_RADIUS = 0.03
+"""m; also the spawn height of base_link (the axle midpoint)."""
+WHEEL_MAX_TORQUE = 0.15
+"""N m per wheel: the velocity motor's force limit, about a small 1:48 gear motor's stall
+torque at 5 V. Traction (friction 1 on 0.7 kg) stays the tighter limit for hard accelerations."""
+CAMERA_VFOV_DEG = 52.0
+"""Vertical field of view of the camera image; derived in docs/SIM.md from the IMX219
+160-deg lens in its 1280x720 (2x2 binned) mode."""
+CAMERA_ASPECT = 16 / 9
+"""Width/height of the field of view. The real pipeline scales the whole 1280x720 capture to
+the policy's size without cropping (hal/gst_camera.py, as NVIDIA's jetbot scales 816x616 to
+224x224), so a 224x224 frame holds a 16:9 view squeezed sideways; rendering with this aspect
+into the requested image size squeezes it the same way. Horizontal FOV: 2 atan(16/9 tan 26°)
+= 82 deg."""
+CAMERA_NEAR = 0.01
+CAMERA_FAR = 5.0
+"""m; the room's diagonal is 4.2 m."""
+GRAVITY = -9.81
+BLOCK_HALF_SIZE = 0.025
+
+LEFT, RIGHT, CAMERA_LINK = 0, 1, 3  # joint/link indices in jetbot.urdf's order
+_WHEELS = (LEFT, RIGHT)
+_WHEEL_FORCES = (WHEEL_MAX_TORQUE, WHEEL_MAX_TORQUE)
+
+
+def _asset(name: str) -> str:
+    return str(ASSETS / name)
+
+
+class JetbotWorld:
+    """A JetBot, a room and a red goal block in one PyBullet client of its own.
+
+    Several worlds can live in one process (each has its own client; the global default
+    client is never used). ``image_size`` is (width, height) of ``render()``'s image.
+    """
+
+    def __init__(
+        self,
+        sim: SimConfig,
+        *,
+        gui: bool = False,
+        image_size: tuple[int, int] = (224, 224),
+    ) -> None:
+        self._sim = sim
+        self._dt_physics = 1.0 / sim.physics_hz
+        self._width, self._height = image_size
+        if gui and sys.platform.startswith("linux") and not (
+            os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+        ):
+            raise UsageError("--gui needs a display (DISPLAY is not set)")
+        self._client = p.connect(p.GUI if gui else p.DIRECT)
+        if self._client < 0:
+            raise UsageError("cannot open a PyBullet " + ("window" if gui else "client"))
+        self._projection = p.computeProjectionMatrixFOV(
+            CAMERA_VFOV_DEG, CAMERA_ASPECT, CAMERA_NEAR, CAMERA_FAR,
+            physicsClientId=self._client,
+        )
+        self._gui = gui
+        if gui:
+            p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=self._client)
+            p.resetDebugVisualizerCamera(
+                1.6, 0.0, -45.0, (-0.2, 0.0, 0.0), physicsClientId=self._client
+            )
+        self._duty = (0.0, 0.0)
+        self._wheel_cmd = [0.0, 0.0]  # rad/s, the lagged motor velocity targets
+        self._steps = 0
+        self._requested_time = 0.0
+        self.reset()
+
+    def reset(
+        self,
+        robot_pose: tuple[float, float, float] = (-0.6, 0.0, 0.0),
+        block_xy: tuple[float, float] = (0.3, 0.0),
+    ) -> None:
+        """Place the robot (x, y, yaw) and the block; motors at rest, ``sim_time`` = 0.
+
+        The scene is rebuilt from its URDFs (a few ms): PyBullet keeps contact and
+        overlapping-pair caches that moving the bodies back does not clear, and only a
+        rebuilt world replays bit for bit like a new one.
+        """
+        c = self._client
+        if self._gui:  # no half-built scene on screen
+            p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 0, physicsClientId=c)
+        p.resetSimulation(physicsClientId=c)
+        p.setGravity(0, 0, GRAVITY, physicsClientId=c)
+        p.setTimeStep(self._dt_physics, physicsClientId=c)
+        p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=c)
+        p.loadURDF(_asset("room.urdf"), useFixedBase=True, physicsClientId=c)
+        x, y, yaw = robot_pose
+        self._robot = p.loadURDF(
+            _asset("jetbot.urdf"), (x, y, WHEEL_RADIUS), p.getQuaternionFromEuler((0, 0, yaw)),
+            physicsClientId=c,
+        )
+        self._block = p.loadURDF(
+            _asset("block.urdf"), (block_xy[0], block_xy[1], BLOCK_HALF_SIZE), physicsClientId=c
+        )
+        info = p.getDynamicsInfo(self._robot, -1, physicsClientId=c)
+        self._com_to_link = p.invertTransform(info[3], info[4], physicsClientId=c)
+        # Free-wheeling until the first step: PyBullet's default joint motor would brake.
+        p.setJointMotorControlArray(
+            self._robot, _WHEELS, p.VELOCITY_CONTROL, forces=(0.0, 0.0), physicsClientId=c
+        )
+        if self._gui:
+            p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 1, physicsClientId=c)
+        self._duty = (0.0, 0.0)
+        self._wheel_cmd = [0.0, 0.0]
+        self._steps = 0
+        self._requested_time = 0.0
+
+    def set_duty(self, left: float, right: float) -> None:
+        """Duties in [-1, 1] as the motor board gets them (clipped like a PWM output);
+        applied from the next ``step``."""
+        if not (math.isfinite(left) and math.isfinite(right)):
+            raise ValueError(f"non-finite duty ({left}, {right})")
+        self._duty = (min(max(float(left), -1.0), 1.0), min(max(float(right), -1.0), 1.0))
+
+    def step(self, dt: float) -> None:
+        """Advance by ``dt`` seconds in fixed physics sub-steps of 1/physics_hz.
+
+        Time is counted in whole sub-steps: a ``dt`` that is not a multiple of the sub-step
+        runs the nearest whole number of them, and the remainder carries to the next call.
+        """
+        if not (dt >= 0 and math.isfinite(dt)):
+            raise ValueError(f"step dt must be a finite number >= 0, got {dt}")
+        self._requested_time += dt
+        n = round(self._requested_time * self._sim.physics_hz) - self._steps
+        if n <= 0:
+            return
+        c = self._client
+        gain, tau = self._sim.motor_gain, self._sim.motor_tau
+        target_l, target_r = gain * self._duty[0], gain * self._duty[1]
+        # exact discretisation of d(omega)/dt = (target - omega) / tau over one sub-step
+        blend = 1.0 if tau == 0 else -math.expm1(-self._dt_physics / tau)
+        omega_l, omega_r = self._wheel_cmd
+        for _ in range(n):
+            omega_l += blend * (target_l - omega_l)
+            omega_r += blend * (target_r - omega_r)
+            p.setJointMotorControlArray(
+                self._robot, _WHEELS, p.VELOCITY_CONTROL,
+                targetVelocities=(omega_l, omega_r), forces=_WHEEL_FORCES, physicsClientId=c,
+            )
+            p.stepSimulation(physicsClientId=c)
+        self._wheel_cmd = [omega_l, omega_r]
+        self._steps += n
+
+    def render(self) -> np.ndarray:
+        """The robot camera's view: (height, width, 3) uint8 RGB."""
+        c = self._client
+        state = p.getLinkState(
+            self._robot, CAMERA_LINK, computeForwardKinematics=True, physicsClientId=c
+        )
+        eye = np.array(state[4])
+        rotation = np.array(p.getMatrixFromQuaternion(state[5])).reshape(3, 3)
+        view = p.computeViewMatrix(
+            eye.tolist(), (eye + rotation[:, 0]).tolist(), rotation[:, 2].tolist(),
+            physicsClientId=c,
+        )
+        _, _, rgba, _, _ = p.getCameraImage(
+            self._width, self._height, view, self._projection,
+            shadow=0, renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
+            physicsClientId=c,
+        )
+        rgba = np.asarray(rgba, dtype=np.uint8).reshape(self._height, self._width, 4)
+        return np.ascontiguousarray(rgba[:, :, :3])
+
+    def _robot_frame(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """base_link's frame in the world. PyBullet reports a base's centre of mass, which
+        jetbot.urdf puts 2 cm behind the axle; this undoes that offset."""
+        c = self._client
+        com_pos, com_orn = p.getBasePositionAndOrientation(self._robot, physicsClientId=c)
+        return p.multiplyTransforms(com_pos, com_orn, *self._com_to_link, physicsClientId=c)
+
+    def robot_pose(self) -> tuple[float, float, float]:
+        """x, y (m) and yaw (rad) of base_link, the axle midpoint."""
+        (x, y, _), (qx, qy, qz, qw) = self._robot_frame()
+        yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        return (x, y, yaw)
+
+    def block_position(self) -> tuple[float, float, float]:
+        """The block's centre (m)."""
+        position, _ = p.getBasePositionAndOrientation(self._block, physicsClientId=self._client)
+        return tuple(position)
+
+    def distance_to_block(self) -> float:
+        """From the robot's base_link origin to the block's centre, in 3-D (m)."""
+        return math.dist(self._robot_frame()[0], self.block_position())
+
+    def wheel_velocities(self) -> tuple[float, float]:
+        """Measured (left, right) wheel angular velocities, rad/s, positive forward."""
+        states = p.getJointStates(self._robot, _WHEELS, physicsClientId=self._client)
+        return (states[0][1], states[1][1])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) of ``render()``'s image."""
+        return (self._width, self._height)
+
+    @property
+    def duty(self) -> tuple[float, float]:
+        """The duties the next ``step`` applies."""
+        return self._duty
+
+    @property
+    def sim_time(self) -> float:
+        """Simulated seconds since the last reset (whole physics sub-steps)."""
+        return self._steps / self._sim.physics_hz
+
+    def close(self) -> None:
+        """Disconnect the PyBullet client. Idempotent."""
+        if self._client >= 0:
+            p.disconnect(physicsClientId=self._client)
+            self._client = -1
+
+    def __enter__(self) -> JetbotWorld:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
