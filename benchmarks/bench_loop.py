@@ -55,6 +55,10 @@ def build_loop(policy, period: float, telemetry: Telemetry, watchdog_timeout: fl
     return loop, latch, watchdog
 
 
+def telemetry_records(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if "event" not in line]
+
+
 def jitter(policy, rate: float, seconds: float, workdir: Path) -> dict:
     telemetry = Telemetry(workdir / f"jitter_{rate:g}.jsonl")
     loop, _, watchdog = build_loop(policy, 1.0 / rate, telemetry, 3.0 / rate)
@@ -62,14 +66,14 @@ def jitter(policy, rate: float, seconds: float, workdir: Path) -> dict:
     loop.run(duration=seconds)
     watchdog.close()
     telemetry.close()
-    late = np.array(loop.stats.late_ms)
+    late = [r["late_ms"] for r in telemetry_records(workdir / f"jitter_{rate:g}.jsonl")]
     return {
         "rate_hz": rate,
         "ticks": loop.stats.ticks,
         "achieved_hz": round(loop.stats.achieved_hz, 3),
         "overruns": loop.stats.overruns,
         "start_jitter_ms": stats(late),
-        "infer_ms": stats(loop.stats.infer_ms),
+        "infer_ms_p50": round(loop.stats.infer_ms.percentile(50), 4),
     }
 
 
@@ -82,7 +86,7 @@ def overhead(policy, ticks: int, workdir: Path) -> dict:
 
     def counting_tick(deadline: float, now: float) -> None:
         original(deadline, now)
-        marks.append((now, loop.stats.infer_ms[-1] if loop.stats.infer_ms else 0.0))
+        marks.append((now, loop.stats.infer_ms.last))
         if len(marks) >= ticks:
             latch.trip("enough ticks", fault=False)
 

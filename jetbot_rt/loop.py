@@ -16,6 +16,7 @@ import numpy as np
 from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.errors import Fault
 from jetbot_rt.hal.base import Camera
+from jetbot_rt.histogram import Histogram
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
 from jetbot_rt.telemetry import Telemetry
 
@@ -28,10 +29,10 @@ class Policy(Protocol):
 class LoopStats:
     ticks: int = 0
     overruns: int = 0
-    tick_ms: list[float] = field(default_factory=list)
-    late_ms: list[float] = field(default_factory=list)
-    infer_ms: list[float] = field(default_factory=list)
-    frame_age_ms: list[float] = field(default_factory=list)
+    tick_ms: Histogram = field(default_factory=Histogram)
+    late_ms: Histogram = field(default_factory=Histogram)
+    infer_ms: Histogram = field(default_factory=Histogram)
+    frame_age_ms: Histogram = field(default_factory=Histogram)
     t_start: float | None = None
     t_end: float | None = None
 
@@ -44,10 +45,6 @@ class LoopStats:
     @property
     def achieved_hz(self) -> float:
         return self.ticks / self.elapsed if self.elapsed > 0 else 0.0
-
-
-def percentile(values: list[float], q: float) -> float:
-    return float(np.percentile(values, q)) if values else float("nan")
 
 
 class ControlLoop:
@@ -104,11 +101,16 @@ class ControlLoop:
                     self.latch.trip(f"exception in tick: {type(exc).__name__}: {exc}")
                     break
                 deadline += self.period
-                now = self.clock()
+                tick_start, now = now, self.clock()
                 if now > deadline:
                     missed = int((now - deadline) // self.period) + 1
                     stats.overruns += missed
                     deadline += missed * self.period
+                if deadline - tick_start < self.period / 2:
+                    # This tick began over half a period late (a slow wake-up under load):
+                    # skip the next deadline too rather than tick again a moment later.
+                    stats.overruns += 1
+                    deadline += self.period
                 self.latch.wait(max(0.0, deadline - self.clock()))
         finally:
             stats.t_end = self.clock()
@@ -139,10 +141,10 @@ class ControlLoop:
         stats.ticks += 1
         tick_ms = (t_end - t_start) * 1e3
         infer_ms = (t_act - t_infer) * 1e3
-        stats.tick_ms.append(tick_ms)
-        stats.late_ms.append((t_start - deadline) * 1e3)
-        stats.infer_ms.append(infer_ms)
-        stats.frame_age_ms.append(frame_age * 1e3)
+        stats.tick_ms.add(tick_ms)
+        stats.late_ms.add((t_start - deadline) * 1e3)
+        stats.infer_ms.add(infer_ms)
+        stats.frame_age_ms.add(frame_age * 1e3)
         if self.watchdog is not None:
             self.watchdog.kick()
         if self.on_tick_done is not None:

@@ -20,9 +20,9 @@ from typing import Any
 
 from jetbot_rt.actions import ActionPipeline, resolve_max_speed
 from jetbot_rt.config import Config, load_config, set_value
-from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, Fault, UsageError, first_line
+from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE, Fault, UsageError, first_line
 from jetbot_rt.hal import BackendOptions, make_backend
-from jetbot_rt.loop import ControlLoop, percentile
+from jetbot_rt.loop import ControlLoop
 from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
 from jetbot_rt.telemetry import Telemetry
@@ -81,6 +81,7 @@ class Runtime:
         self.watchdog: Watchdog | None = None
         self.control: Any = None
         self.notifier: Any = None
+        self.stuck_thread: threading.Thread | None = None
 
     def _log_trip(self, reason: str) -> None:
         self.telemetry.event("safe_stop", reason=reason, fault=self.latch.fault, cmd=[0.0, 0.0])
@@ -135,6 +136,7 @@ class Runtime:
         worker.start()
         worker.join(limit)
         if worker.is_alive():
+            self.stuck_thread = worker
             raise UsageError(
                 f"policy {policy.path}: warm-up inference did not finish within {limit:.1f} s"
             )
@@ -173,14 +175,16 @@ class Runtime:
 
         self._install_signal_handlers()
         self.notifier = Notifier.from_env()
-        policy = self.prepare()
-        assert self.drive is not None
         try:
-            self.drive.stop()  # start from a known state: whatever the board held is cleared
+            # The control socket first: a second jetbot-rt is refused before it opens (and
+            # re-initialises) the motor board that the first one is driving.
             self.control = ControlServer(
                 on_stop=lambda reason: self.latch.trip(reason, fault=False)
             )
             self.control.start()
+            policy = self.prepare()
+            assert self.drive is not None
+            self.drive.stop()  # start from a known state: whatever the board held is cleared
             self.warm_up(policy)
             if self.latch.tripped:  # a signal during start-up
                 return self._finish()
@@ -262,10 +266,13 @@ class Runtime:
             summary.update(
                 ticks=stats.ticks,
                 achieved_hz=round(stats.achieved_hz, 3),
-                tick_ms_p50=round(percentile(stats.tick_ms, 50), 3),
-                tick_ms_p99=round(percentile(stats.tick_ms, 99), 3),
+                tick_ms_p50=round(stats.tick_ms.percentile(50), 3),
+                tick_ms_p99=round(stats.tick_ms.percentile(99), 3),
+                tick_ms_max=round(stats.tick_ms.max, 3),
                 overruns=stats.overruns,
             )
+        if self.backend is not None and self.backend.counters is not None:
+            summary.update(self.backend.counters())
         if self.drive is not None and self.drive.stop_errors:
             summary["stop_errors"] = self.drive.stop_errors
         if self.telemetry.lost:
@@ -288,6 +295,8 @@ def print_summary(summary: dict[str, Any], rate_hz: float) -> None:
             f"p99 {summary['tick_ms_p99']:.2f} ms",
             f"  overruns     {summary['overruns']}",
         ]
+    if "i2c_retried" in summary:
+        lines.append(f"  i2c retried  {summary['i2c_retried']} transfers")
     if summary.get("telemetry_lost"):
         lines.append(f"  telemetry    {summary['telemetry_lost']} records lost")
     for error in summary.get("stop_errors", []):
@@ -309,4 +318,10 @@ def run(args: argparse.Namespace) -> int:
     except UsageError as exc:
         runtime.telemetry.event("end", reason=str(exc), exit_code=2, cmd=[0.0, 0.0])
         runtime.telemetry.close()
+        if runtime.stuck_thread is not None:
+            # A warm-up stuck in native code makes the interpreter's shutdown abort (SIGABRT,
+            # "terminate called without an active exception"): say it as the CLI would, leave.
+            print(f"jetbot-rt run: error: {exc}", file=sys.stderr, flush=True)
+            sys.stdout.flush()
+            os._exit(EXIT_USAGE)
         raise
