@@ -3,12 +3,15 @@
 A telemetry file that can no longer be written (disk full, directory removed) does not stop
 the robot: telemetry is for people, the safety chain does not depend on it. The writer reports
 the failure once on stderr, stops writing and keeps the count of lost records for the summary.
+A removed file (its directory deleted) raises no write error on Linux, the records would go to
+an unlinked inode; the writer checks the link count before each record and treats that the same.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import sys
 import threading
 import time
@@ -42,6 +45,8 @@ class Telemetry:
                 self.lost += 1
                 return
             try:
+                if os.fstat(self._file.fileno()).st_nlink == 0:
+                    raise FileNotFoundError("file removed while running")
                 self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
             except (OSError, ValueError) as exc:
                 self.error = str(getattr(exc, "strerror", None) or exc)

@@ -231,3 +231,118 @@ def int_input(path: Path) -> Path:
         [numpy_helper.from_array(np.zeros((1, 2), np.float32), "c")],
     )
     return _save(graph, path)
+
+
+def inf_when_dark(path: Path, mu: tuple[float, float] = (1.0, 1.0)) -> Path:
+    """Like ``nan_when_dark``, but the left action becomes +inf on a black frame."""
+    nodes = [
+        *_dark_condition(),
+        helper.make_node("Where", ["dark", "inf_mu", "mu_const"], ["mu_raw"]),
+        *_mu_from_obs(mu)[:2],
+        helper.make_node("Add", ["mu_raw", "zeroed"], ["mu"]),
+    ]
+    inits = [
+        *_mu_initializers(mu),
+        numpy_helper.from_array(np.array(1.0, np.float32), "one"),
+        numpy_helper.from_array(np.array([[np.inf, mu[1]]], np.float32), "inf_mu"),
+    ]
+    graph = helper.make_graph(
+        nodes, "inf_when_dark", [_input("NHWC", 224)],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])], inits,
+    )
+    return _save(graph, path)
+
+
+def slow_when_dark(path: Path, iterations: int, mu: tuple[float, float] = (1.0, 1.0)) -> Path:
+    """Like ``slow``, but the 64x64 matrix loop runs ``iterations`` times only on a black frame
+    (once otherwise): fast enough for warm-up, slower than a period while the lens is dark."""
+    body = helper.make_graph(
+        [
+            helper.make_node("Identity", ["cond_in"], ["cond_out"]),
+            helper.make_node("MatMul", ["m_in", "w"], ["m_prod"]),
+            helper.make_node("Mul", ["m_prod", "decay"], ["m_out"]),
+        ],
+        "work",
+        [
+            helper.make_tensor_value_info("i", TensorProto.INT64, []),
+            helper.make_tensor_value_info("cond_in", TensorProto.BOOL, []),
+            helper.make_tensor_value_info("m_in", TensorProto.FLOAT, [64, 64]),
+        ],
+        [
+            helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
+            helper.make_tensor_value_info("m_out", TensorProto.FLOAT, [64, 64]),
+        ],
+        [
+            numpy_helper.from_array(np.eye(64, dtype=np.float32), "w"),
+            numpy_helper.from_array(np.array(0.5, np.float32), "decay"),
+        ],
+    )
+    nodes = [
+        *_dark_condition(),
+        helper.make_node("Where", ["dark", "many", "once"], ["trips"]),
+        *_mu_from_obs(mu)[:2],
+        helper.make_node("Loop", ["trips", "true", "m0"], ["m_end"], body=body),
+        helper.make_node("ReduceSum", ["m_end"], ["m_sum"], keepdims=0),
+        helper.make_node("Mul", ["m_sum", "zero"], ["m_zero"]),
+        helper.make_node("Add", ["zeroed", "m_zero"], ["offset"]),
+        helper.make_node("Add", ["mu_const", "offset"], ["mu"]),
+    ]
+    inits = [
+        *_mu_initializers(mu),
+        numpy_helper.from_array(np.array(1.0, np.float32), "one"),
+        numpy_helper.from_array(np.array(iterations, np.int64), "many"),
+        numpy_helper.from_array(np.array(1, np.int64), "once"),
+        numpy_helper.from_array(np.array(True), "true"),
+        numpy_helper.from_array(np.ones((64, 64), np.float32), "m0"),
+    ]
+    graph = helper.make_graph(
+        nodes, "slow_when_dark", [_input("NHWC", 224)],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])], inits,
+    )
+    return _save(graph, path)
+
+
+def _mean_graph(name: str, inputs: list, outputs: list, nodes: list | None = None,
+                inits: list | None = None) -> onnx.GraphProto:
+    return helper.make_graph(nodes or [
+        helper.make_node("ReduceMean", ["obs"], ["m"], keepdims=0),
+        helper.make_node("Add", ["c", "m"], ["mu"]),
+    ], name, inputs, outputs, inits if inits is not None else [
+        numpy_helper.from_array(np.zeros((1, 2), np.float32), "c")])
+
+
+def dynamic_size(path: Path) -> Path:
+    """Image input ``[1, h, w, 3]``: no fixed size to resize frames to."""
+    obs = helper.make_tensor_value_info("obs", TensorProto.FLOAT, [1, "h", "w", 3])
+    mu = helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])
+    return _save(_mean_graph("dynamic", [obs], [mu]), path)
+
+
+def two_inputs(path: Path) -> Path:
+    extra = helper.make_tensor_value_info("speed", TensorProto.FLOAT, [1, 1])
+    mu = helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])
+    nodes = [helper.make_node("ReduceMean", ["obs"], ["m"], keepdims=0),
+             helper.make_node("Add", ["c", "m"], ["cm"]),
+             helper.make_node("Add", ["cm", "speed"], ["mu"])]
+    return _save(_mean_graph("two_inputs", [_input("NHWC", 224), extra], [mu], nodes), path)
+
+
+def int_output(path: Path) -> Path:
+    mu = helper.make_tensor_value_info("mu", TensorProto.INT64, [1, 2])
+    nodes = [helper.make_node("ReduceMean", ["obs"], ["m"], keepdims=0),
+             helper.make_node("Add", ["c", "m"], ["f"]),
+             helper.make_node("Cast", ["f"], ["mu"], to=TensorProto.INT64)]
+    return _save(_mean_graph("int_output", [_input("NHWC", 224)], [mu], nodes), path)
+
+
+def unknown_operator(path: Path) -> Path:
+    """A node of a domain onnxruntime does not know: the file parses, no session opens."""
+    mu = helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])
+    nodes = [helper.make_node("Teleport", ["obs"], ["mu"], domain="com.example.nowhere")]
+    model = helper.make_model(
+        _mean_graph("unknown_op", [_input("NHWC", 224)], [mu], nodes, []),
+        opset_imports=[helper.make_opsetid("", OPSET),
+                       helper.make_opsetid("com.example.nowhere", 1)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path

@@ -48,7 +48,7 @@ def test_duration_end_is_not_a_fault_and_rate_holds():
 def test_overrun_skips_missed_ticks_and_never_bursts():
     # tick 5 takes 3.5 periods: ticks 6..8 deadlines pass; the loop skips them, counts them
     period = 0.02
-    loop, latch, _, _ = make_loop(ScriptedPolicy([[0.1, 0.1]], slow={5: 3.5 * period}), period)
+    loop, _, _, _ = make_loop(ScriptedPolicy([[0.1, 0.1]], slow={5: 3.5 * period}), period)
     starts = []
     original = loop._tick
 

@@ -1,9 +1,9 @@
 import numpy as np
 import onnx
+import policy_models
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-import policy_models
 from jetbot_rt.config import PolicyConfig
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.policy import OnnxPolicy

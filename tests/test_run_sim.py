@@ -4,9 +4,8 @@ import signal
 import subprocess
 import sys
 
-import pytest
-
 import policy_models
+import pytest
 from runner import run_cli, run_until
 
 PERIOD = 1 / 30
@@ -83,7 +82,9 @@ def test_watchdog_trips_on_a_policy_that_hangs(tmp_path):
 
 def test_stalled_camera_makes_frames_stale_and_stops(tmp_path):
     policy = policy_models.constant(tmp_path / "p.onnx", (1.0, 1.0))
-    config = write_config(tmp_path, "[sim]\ncamera_stall_after = 0.5\n[loop]\nmax_frame_age = 0.1\n")
+    config = write_config(
+        tmp_path, "[sim]\ncamera_stall_after = 0.5\n[loop]\nmax_frame_age = 0.1\n"
+    )
     result = run_cli(
         ["run", "--backend", "sim", "--policy", str(policy), "--config", str(config),
          "--duration", "20"],

@@ -58,6 +58,9 @@ class I2CBus:
         self.smbus = smbus
         self.bus_number = bus_number
         self.retries = retries
+        self.retried = 0
+        """Transfers that failed with ``OSError`` and were tried again (ridden-through noise
+        and the failed attempts before an ``I2CFault`` alike): the run summary reports it."""
         self._lock = threading.Lock()
 
     @classmethod
@@ -156,4 +159,5 @@ class I2CBus:
                         f"I2C bus {self.bus_number} address 0x{address:02x}: "
                         f"{exc.strerror or exc} (after {attempts} attempts)"
                     ) from exc
+                self.retried += 1
                 time.sleep(RETRY_DELAY_S * attempt)

@@ -104,8 +104,12 @@ class PCA9685Emulator:
             try:
                 if self._state_file.exists():
                     self._load(json.loads(self._state_file.read_text()))
-                yield
-                self._save()
+                try:
+                    yield
+                finally:
+                    # also after a failed transaction: an injected failure is used up (and
+                    # counted) in the shared state too, not only in this process's copy
+                    self._save()
             finally:
                 fcntl.flock(lock, fcntl.LOCK_UN)
 

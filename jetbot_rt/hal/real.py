@@ -22,4 +22,10 @@ def build_backend(config: Config, options: BackendOptions) -> Backend:
     """
     camera = GstCamera(config.camera, options.frame_size)
     drive = open_drive(config.motors)
-    return Backend(camera=camera, drive=drive, close=camera.stop)
+    bus = drive.bus  # type: ignore[attr-defined]  # both layouts keep their I2CBus here
+
+    def counters() -> dict[str, int]:
+        return {"i2c_retried": bus.retried}
+
+    return Backend(camera=camera, drive=drive, close=camera.stop, telemetry=counters,
+                   counters=counters)

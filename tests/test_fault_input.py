@@ -1,0 +1,270 @@
+"""Fault matrix, bad input: every config key with a bad value, broken models, cameras that
+cannot start, conflicting flags and a second runtime. Each is exit code 2, one line on stderr
+naming the problem, no traceback, and not a single motor command (docs/SAFETY.md).
+
+tests/test_run_sim.py covers the first examples of each kind; this file goes through all.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+import policy_models
+import pytest
+from runner import RuntimeProcess, processes_with, run_cli, wait_for
+
+from jetbot_rt import config as config_module
+from jetbot_rt.cli import main
+
+# Every key with a value of the right type but out of its range (or not one of its choices).
+OUT_OF_RANGE = {
+    ("loop", "rate_hz"): 0,
+    ("loop", "max_frame_age"): -0.1,
+    ("loop", "watchdog_timeout"): 0,
+    ("loop", "warmup_runs"): 101,
+    ("policy", "path"): None,  # any string is a path: a missing one is a model case below
+    ("policy", "layout"): "NWHC",
+    ("policy", "color_order"): "GBR",
+    ("policy", "pixel_range"): "0-65535",
+    ("policy", "providers"): None,  # any list of names: unknown ones are skipped, CPU remains
+    ("actions", "max_speed"): 1.5,
+    ("actions", "trim"): [1.0, 2.5],
+    ("actions", "sign"): [1, 0],
+    ("motors", "layout"): "l298n",
+    ("motors", "i2c_bus"): 256,
+    ("motors", "address"): 0x80,
+    ("motors", "left_motor"): 5,
+    ("motors", "right_motor"): 0,
+    ("motors", "pwm_frequency"): 2000.0,
+    ("motors", "i2c_retries"): 21,
+    ("camera", "source"): "v4l2",
+    ("camera", "sensor_id"): 8,
+    ("camera", "capture_width"): 8,
+    ("camera", "capture_height"): 9000,
+    ("camera", "fps"): 0,
+    ("camera", "flip_method"): 8,
+    ("camera", "start_timeout"): 0,
+    ("telemetry", "path"): None,  # any string is a path: an unwritable one is a case below
+    ("sim", "physics_hz"): -240.0,
+    ("sim", "motor_gain"): 0,
+    ("sim", "motor_tau"): -0.05,
+    ("sim", "seed"): None,  # any integer is a seed
+    ("sim", "camera_stall_after"): 0,
+    ("sim", "blackout"): [2.0, 1.0],
+}
+# A value of the wrong TOML type for each declared type.
+WRONG_TYPE = {"float": "fast", "int": 1.5, "str": 7, "list[float]": 0.5, "list[int]": "both",
+              "list[str]": "CPUExecutionProvider"}
+
+
+def all_keys() -> list[tuple[str, str, str]]:
+    keys = []
+    for section in dataclasses.fields(config_module.Config):
+        for key in dataclasses.fields(section.default_factory()):
+            keys.append((section.name, key.name, str(key.type).replace(" | None", "")))
+    return keys
+
+
+def test_the_table_names_every_config_key() -> None:
+    """A key added to config.py without a bad-value case here fails this test."""
+    assert {(s, k) for s, k, _ in all_keys()} == set(OUT_OF_RANGE)
+
+
+def toml_value(value: object) -> str:
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def config_cases():
+    for section, key, type_name in all_keys():
+        yield pytest.param(f"[{section}]\n{key} = {toml_value(WRONG_TYPE[type_name])}\n",
+                           f"[{section}] {key} must be", id=f"{section}.{key}-wrong-type")
+        bad = OUT_OF_RANGE[(section, key)]
+        if bad is not None:
+            yield pytest.param(f"[{section}]\n{key} = {toml_value(bad)}\n",
+                               f"[{section}] {key} must be", id=f"{section}.{key}-out-of-range")
+        yield pytest.param(f"[{section}]\n{key}s = 1\n", f"unknown key [{section}] {key}s",
+                           id=f"{section}.{key}s-unknown")
+    yield pytest.param("[wheels]\nleft = 1\n", "unknown section [wheels]", id="unknown-section")
+    yield pytest.param("loop = 30\n", "[loop] must be a table", id="section-not-a-table")
+    yield pytest.param("[loop\nrate_hz = 30\n", "is not valid TOML", id="not-toml")
+    yield pytest.param("[loop]\nrate_hz = 30\nrate_hz = 20\n", "is not valid TOML",
+                       id="duplicate-key")
+
+
+@pytest.fixture
+def good_policy(tmp_path_factory) -> Path:
+    return policy_models.constant(tmp_path_factory.mktemp("policy") / "good.onnx")
+
+
+def run_in_process(args: list[str], capfd) -> tuple[int, list[str]]:
+    """The CLI's own entry point, in this process: a config error ends before any backend
+    exists. ``--duration`` keeps a wrongly accepted config from driving for long (first: a
+    later ``--duration`` in ``args`` wins)."""
+    code = main([args[0], "--duration", "0.2", *args[1:]])
+    return code, capfd.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize(("text", "message"), list(config_cases()))
+def test_every_bad_config_key_and_value(tmp_path, good_policy, capfd, monkeypatch,
+                                        text, message) -> None:
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path / "run"))
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    code, lines = run_in_process(["run", "--backend", "sim", "--policy", str(good_policy),
+                                  "--config", str(path)], capfd)
+    assert code == 2
+    assert len(lines) == 1 and message in lines[0], lines
+    assert str(path) in lines[0]  # which file
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--rate", "inf"], "--rate: [loop] rate_hz must be a number > 0"),
+    (["--rate", "nan"], "--rate: [loop] rate_hz must be a number > 0"),
+    (["--rate", "-30"], "--rate: [loop] rate_hz must be a number > 0"),
+    (["--max-speed", "0"], "--max-speed: [actions] max_speed must be a number in (0, 1]"),
+    (["--max-speed", "nan"], "--max-speed: [actions] max_speed must be a number in (0, 1]"),
+    (["--duration", "0"], "--duration must be > 0"),
+    (["--duration", "nan"], "--duration must be > 0"),
+    (["--telemetry", "/nonexistent-dir/t.jsonl"], "cannot write telemetry"),
+    (["--telemetry", "/"], "cannot write telemetry /"),
+])
+def test_bad_and_conflicting_flags(tmp_path, good_policy, capfd, monkeypatch, flags,
+                                   message) -> None:
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path / "run"))
+    code, lines = run_in_process(["run", "--backend", "sim", "--policy", str(good_policy),
+                                  *flags], capfd)
+    assert code == 2
+    assert len(lines) == 1 and message in lines[0], lines
+
+
+def model_cases(tmp_path: Path) -> list:
+    good = policy_models.constant(tmp_path / "good.onnx")
+    truncated = tmp_path / "truncated.onnx"
+    truncated.write_bytes(good.read_bytes()[: len(good.read_bytes()) // 2])
+    empty = tmp_path / "empty.onnx"
+    empty.write_bytes(b"")
+    a_config = tmp_path / "config.toml"
+    a_config.write_text("[loop]\nrate_hz = 30\n")
+    bad_meta = policy_models.constant(tmp_path / "bad_meta.onnx",
+                                      metadata={"jetbot_rt.color_order": "YUV"})
+    return [
+        ("empty", empty, "not a loadable ONNX model"),
+        ("truncated", truncated, "not a loadable ONNX model"),
+        ("a-toml-file", a_config, "not a loadable ONNX model"),
+        ("a-directory", tmp_path, "no such file"),
+        ("unknown-operator", policy_models.unknown_operator(tmp_path / "op.onnx"),
+         "is not a registered function/op"),
+        ("dynamic-size", policy_models.dynamic_size(tmp_path / "dyn.onnx"), "has no fixed size"),
+        ("two-inputs", policy_models.two_inputs(tmp_path / "two.onnx"),
+         "expected one image input, found 2"),
+        ("int-actions", policy_models.int_output(tmp_path / "int.onnx"),
+         "expected float actions in output mu"),
+        ("bad-metadata", bad_meta, "unsupported metadata color_order='YUV'"),
+    ]
+
+
+MODEL_IDS = ["empty", "truncated", "a-toml-file", "a-directory", "unknown-operator",
+             "dynamic-size", "two-inputs", "int-actions", "bad-metadata"]
+
+
+@pytest.mark.parametrize("case", MODEL_IDS)
+def test_broken_models_are_refused_before_any_motor_command(tmp_path, case) -> None:
+    (path, message), = [(p, m) for name, p, m in model_cases(tmp_path) if name == case]
+    telemetry = tmp_path / "t.jsonl"
+    result = run_cli(["run", "--backend", "sim", "--policy", str(path), "--duration", "1"],
+                     telemetry=telemetry,
+                     env=dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run")))
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
+    assert "Traceback" not in result.stderr
+    assert not result.ticks
+    (end,) = result.records
+    assert end["event"] == "end" and end["exit_code"] == 2 and end["cmd"] == [0.0, 0.0]
+
+
+@pytest.mark.slow
+def test_a_policy_that_hangs_on_its_first_frame_is_refused_at_warm_up(tmp_path) -> None:
+    """The warm-up runs in a thread with a time limit (max(5 s, 20 periods)): a model that
+    never returns is a usage error, and the process ends although that thread cannot."""
+    policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
+    rt = RuntimeProcess(tmp_path, "sim", policy, config="[sim]\nblackout = [0.0, 1000.0]\n",
+                        duration=5.0)
+    try:
+        result = rt.start().finish(60)
+    finally:
+        rt.kill()
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "warm-up inference did not finish within 5.0 s" in lines[0]
+    assert not result.ticks
+
+
+CAMERA_CASES = [
+    ("no-such-element", "nosuchsrc name={mark}", 'no element "nosuchsrc"'),
+    ("bad-property", "videotestsrc name={mark} pattern=nosuch", 'could not set property'),
+    ("cannot-link", "videotestsrc name={mark} ! jpegenc", "could not link jpegenc"),
+    ("ends-before-first-frame", "videotestsrc name={mark} num-buffers=0",
+     "camera pipeline ended before its first frame"),
+    ("no-frame-in-time", "videotestsrc name={mark} is-live=true ! valve drop=true",
+     "camera gave no frame within 1 s"),
+]
+
+
+@pytest.mark.skipif(shutil.which("gst-launch-1.0") is None, reason="needs gst-launch-1.0")
+@pytest.mark.parametrize(("source", "message"), [pytest.param(s, m, id=i)
+                                                 for i, s, m in CAMERA_CASES])
+def test_a_camera_that_cannot_start_is_exit_2_with_the_board_off(tmp_path, source,
+                                                                  message) -> None:
+    mark = f"fm{uuid.uuid4().hex[:12]}"
+    policy = policy_models.constant(tmp_path / "policy.onnx")
+    config = f'[camera]\nsource = "gst:{source.format(mark=mark)}"\nstart_timeout = 1\n'
+    rt = RuntimeProcess(tmp_path, "real", policy, config=config, duration=5.0)
+    try:
+        result = rt.start().finish(60)
+    finally:
+        rt.kill()
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
+    assert not result.ticks
+    assert rt.board_off()
+    assert wait_for(lambda: not processes_with(mark), 3.0) is not None
+
+
+@pytest.mark.skipif(shutil.which("gst-launch-1.0") is None, reason="needs gst-launch-1.0")
+def test_a_second_runtime_is_refused_before_it_touches_the_board(tmp_path) -> None:
+    """Two services on one robot: the second is exit 2 and never opens the motor bus (it is
+    given its own emulated board file, which opening the bus would create)."""
+    mark = f"fm{uuid.uuid4().hex[:12]}"
+    policy = policy_models.constant(tmp_path / "policy.onnx", (1.0, 1.0))
+    first = RuntimeProcess(tmp_path, "real", policy, duration=30.0,
+                           config=f'[camera]\nsource = "gst:videotestsrc name={mark} '
+                                  'is-live=true"\nstart_timeout = 10\n')
+    try:
+        first.start()
+        first.wait_ticks(10)
+        second_board = tmp_path / "second-board.json"
+        env = dict(first.env, JETBOT_RT_I2C_EMULATOR=str(second_board))
+        result = run_cli(["run", "--backend", "real", "--policy", str(policy),
+                          "--config", str(first.config)], env=env, timeout=60)
+        assert result.returncode == 2, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and "another jetbot-rt is running" in lines[0]
+        assert not second_board.exists(), "the refused runtime opened the motor bus"
+        before = first.tick_count()
+        first.wait_ticks(before + 10)  # the first drives on
+        assert not first.board_off()
+        first.jetbot_rt("stop")
+        ended = first.finish(30)
+    finally:
+        first.kill()
+    assert ended.returncode == 0 and first.board_off()

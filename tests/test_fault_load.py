@@ -1,0 +1,179 @@
+"""Fault matrix, the clock and the CPU: another process saturating both cores for 30 s, and
+the wall clock jumping while the robot drives (docs/SAFETY.md)."""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import policy_models
+import pytest
+from runner import RuntimeProcess, assert_fixed_rate, processes_with, wait_for
+
+import jetbot_rt
+
+PERIOD = 1 / 30
+LOAD_S = 30.0
+FAKETIME_DIRS = ("/usr/lib/x86_64-linux-gnu/faketime", "/usr/lib/aarch64-linux-gnu/faketime",
+                 "/usr/lib/faketime")
+BUSY_LOOP = ("import time\nend = time.monotonic() + {seconds}\n"
+             "while time.monotonic() < end:\n    pass\n")
+
+
+def record_figures(name: str, **figures: object) -> None:
+    path = os.environ.get("JETBOT_RT_FAULT_FIGURES")
+    if path:
+        with open(path, "a") as out:
+            out.write(json.dumps({"case": name, **figures}) + "\n")
+
+
+def schedule_figures(ticks: list[dict]) -> dict[str, float]:
+    tick_ms = sorted(r["tick_ms"] for r in ticks)
+    return {
+        "ticks": len(ticks),
+        "overruns": ticks[-1]["overruns"],
+        "tick_ms_p99": tick_ms[int(0.99 * (len(tick_ms) - 1))],
+        "tick_ms_max": tick_ms[-1],
+        "late_ms_max": max(r["late_ms"] for r in ticks),
+    }
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("gst-launch-1.0") is None, reason="needs gst-launch-1.0")
+def test_two_busy_cores_for_30_s_the_loop_keeps_its_schedule(tmp_path: Path) -> None:
+    """Real backend (GStreamer camera, emulated board), two busy-looping processes at the same
+    nice level as the runtime for 30 s: the run goes on to its end (no watchdog, no stale
+    frame), every missed deadline is counted as an overrun, and no two ticks start closer
+    than half a period (it never bursts to catch up)."""
+    mark = f"fm{uuid.uuid4().hex[:12]}"
+    policy = policy_models.constant(tmp_path / "policy.onnx", (1.0, -0.5))
+    config = (f'[camera]\nsource = "gst:videotestsrc name={mark} is-live=true"\n'
+              "start_timeout = 10\n")
+    duration = LOAD_S + 3.0
+    rt = RuntimeProcess(tmp_path, "real", policy, config=config, duration=duration)
+    hogs: list[subprocess.Popen[bytes]] = []
+    try:
+        rt.start()
+        rt.wait_ticks(15)
+        loaded_from = rt.tick_count()
+        hogs = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP.format(seconds=LOAD_S)])
+                for _ in range(2)]
+        cpu_s = []
+        for hog in hogs:
+            _pid, status, usage = os.wait4(hog.pid, 0)
+            hog.returncode = os.waitstatus_to_exitcode(status)
+            cpu_s.append(usage.ru_utime + usage.ru_stime)
+        loaded_until = rt.tick_count()
+        result = rt.finish(60)
+    finally:
+        for hog in hogs:
+            if hog.returncode is None:
+                hog.kill()
+                hog.wait()
+        rt.kill()
+
+    assert min(cpu_s) > LOAD_S / 3, f"the load did not load: {cpu_s} s of CPU"
+    assert result.returncode == 0, result.stdout + result.stderr
+    end = result.records[-1]
+    assert end["event"] == "end" and end["reason"].startswith("duration")
+    ticks = result.ticks
+    smallest_gap = assert_fixed_rate(ticks, PERIOD)
+    # every deadline of the run was either ticked or counted as an overrun
+    deadlines = (ticks[-1]["t"] - ticks[-1]["late_ms"] / 1e3
+                 - (ticks[0]["t"] - ticks[0]["late_ms"] / 1e3)) / PERIOD + 1
+    assert ticks[-1]["overruns"] + len(ticks) == pytest.approx(deadlines, abs=1)
+    under_load = ticks[loaded_from:loaded_until]
+    assert len(under_load) >= 0.5 * LOAD_S / PERIOD, "it kept driving under load"
+    assert rt.board_off()
+    assert wait_for(lambda: not processes_with(mark), 3.0) is not None
+    record_figures("load-two-busy-cores-30s-real", cpu_s_per_hog=[round(c, 1) for c in cpu_s],
+                   achieved_hz=end["achieved_hz"], smallest_gap_ms=round(smallest_gap * 1e3, 2),
+                   ticks_under_load=len(under_load),
+                   overruns_under_load=under_load[-1]["overruns"] - under_load[0]["overruns"],
+                   **schedule_figures(under_load))
+
+
+def faketime_library() -> Path | None:
+    for directory in FAKETIME_DIRS:
+        candidate = Path(directory) / "libfaketime.so.1"
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+@pytest.mark.skipif(faketime_library() is None, reason="needs libfaketime (apt: faketime)")
+def test_wall_clock_jumps_do_not_touch_the_loop(tmp_path: Path) -> None:
+    """libfaketime moves CLOCK_REALTIME a day back, then a year forward, while the sim robot
+    drives; CLOCK_MONOTONIC is left alone (what an NTP step or an RTC-less boot does to a
+    Jetson). The run ends on its duration, on schedule, with no stop of any other kind.
+
+    The sim, not the real backend: libfaketime 0.9.10 makes Python's ``time.sleep`` fail with
+    EINVAL (it wraps clock_nanosleep), and the PCA9685 set-up sleeps 0.5 ms. The watchdog and
+    the frame age get 0.5 s: preloaded, the sim's start-up (first frame to first tick) takes
+    about 200 ms here, and its speed is not what this test is about; a wait on the wall clock
+    would show as a day-long stall or a burst whatever the timeouts."""
+    library = faketime_library()
+    clock_file = tmp_path / "faketime"
+    clock_file.write_text("+0\n")
+    env = {"LD_PRELOAD": str(library), "FAKETIME_TIMESTAMP_FILE": str(clock_file),
+           "FAKETIME_DONT_FAKE_MONOTONIC": "1",
+           "FAKETIME_CACHE_DURATION": "1"}
+    policy = policy_models.constant(tmp_path / "policy.onnx", (1.0, 1.0))
+    witness = [sys.executable, "-c", "import time; print(time.time())"]
+    config = "[loop]\nwatchdog_timeout = 0.5\nmax_frame_age = 0.5\n"
+    rt = RuntimeProcess(tmp_path, "sim", policy, config=config, duration=6.0, extra_env=env)
+    try:
+        rt.start()
+        rt.wait_ticks(20)
+        t_before = float(subprocess.run(witness, env=rt.env, capture_output=True,
+                                        text=True, check=True).stdout)
+        clock_file.write_text("-1d\n")
+        time.sleep(1.2)  # libfaketime re-reads the file at most once a second
+        t_back = float(subprocess.run(witness, env=rt.env, capture_output=True,
+                                      text=True, check=True).stdout)
+        clock_file.write_text("+365d\n")
+        result = rt.finish(60)
+    finally:
+        rt.kill()
+    assert t_back < t_before - 86000, "the fake clock did not jump"
+    assert result.returncode == 0, result.stdout + result.stderr
+    (stop,) = result.events("safe_stop")
+    assert stop["reason"] == "duration 6 s reached"
+    ticks = result.ticks
+    assert_fixed_rate(ticks, PERIOD)
+    # ticks (or counted overruns) on every deadline from start to the duration's end
+    assert 5.5 < ticks[-1]["t"] - ticks[0]["t"] < 6.0
+    assert result.records[-1]["cmd"] == [0.0, 0.0]
+
+
+RUNTIME_MODULES = [
+    path for path in Path(jetbot_rt.__file__).parent.rglob("*.py")
+    if not {"sim", "train"} & set(path.relative_to(Path(jetbot_rt.__file__).parent).parts)
+]
+WALL_CLOCK_CALLS = {("time", "time"), ("time", "time_ns"), ("time", "localtime"),
+                    ("time", "gmtime"), ("time", "ctime"), ("datetime", "now"),
+                    ("datetime", "utcnow"), ("datetime", "today"), ("date", "today")}
+
+
+def test_runtime_modules_never_read_the_wall_clock() -> None:
+    """The static half of the proof: no ``time.time()`` (or datetime's now) anywhere in the
+    runtime core; its clocks are ``time.monotonic`` (and ``perf_counter`` for warm-up)."""
+    assert len(RUNTIME_MODULES) >= 10
+    offenders = []
+    for path in RUNTIME_MODULES:
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module in ("time", "datetime"):
+                offenders += [f"{path.name}: from {node.module} import {a.name}"
+                              for a in node.names if a.name in ("time", "time_ns", "datetime")]
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                    and (node.value.id, node.attr) in WALL_CLOCK_CALLS):
+                offenders.append(f"{path.name}:{node.lineno}: {node.value.id}.{node.attr}")
+    assert not offenders, offenders
