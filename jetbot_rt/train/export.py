@@ -1,0 +1,116 @@
+"""Checkpoint -> ONNX in the rl_games layout the runtime (and older tools) expect, with
+metadata that states how to feed it, and a parity check of onnxruntime against torch."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from torch import nn
+
+import jetbot_rt
+from jetbot_rt.actions import DEFAULT_MAX_SPEED
+from jetbot_rt.errors import UsageError
+from jetbot_rt.train.checkpoint import load_checkpoint, model_from_checkpoint
+from jetbot_rt.train.model import IMAGE_SIZE, ActorCritic
+
+DEFAULT_OPSET = 16
+PARITY_TOLERANCE = 1e-4
+ACTION_MEANING = "[left, right] wheel commands in [-1, 1]; duty = max_speed * clamp(mu, -1, 1)"
+
+
+class ExportError(UsageError):
+    """The exported model does not match the trained one (exit 2, one line)."""
+
+
+def policy_metadata(task: str, max_speed: float) -> dict[str, str]:
+    return {
+        "jetbot_rt.layout": "NHWC",
+        "jetbot_rt.color_order": "RGB",
+        "jetbot_rt.pixel_range": "0-255",
+        "jetbot_rt.action": ACTION_MEANING,
+        "jetbot_rt.max_speed": repr(float(max_speed)),
+        "jetbot_rt.task": task,
+        "jetbot_rt.version": jetbot_rt.__version__,
+    }
+
+
+class _ExportedPolicy(nn.Module):
+    """Same outputs as ``ActorCritic.forward``; wrapped so the graph's names are fixed here."""
+
+    def __init__(self, model: ActorCritic) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.model(obs)
+
+
+def export_model(
+    model: ActorCritic,
+    out: str | Path,
+    *,
+    task: str = "forward",
+    max_speed: float = DEFAULT_MAX_SPEED,
+    opset: int = DEFAULT_OPSET,
+) -> float:
+    """Write ``out`` and return the parity error; raise ``ExportError`` if it exceeds 1e-4."""
+    out = Path(out)
+    model = model.eval()
+    dummy = torch.rand(2, IMAGE_SIZE, IMAGE_SIZE, 3) * 255.0
+    buffer = io.BytesIO()
+    torch.onnx.export(
+        _ExportedPolicy(model),
+        (dummy,),
+        buffer,
+        dynamo=False,
+        input_names=["obs"],
+        output_names=["mu", "log_std", "value"],
+        dynamic_axes={name: {0: "N"} for name in ("obs", "mu", "log_std", "value")},
+        opset_version=opset,
+    )
+    proto = onnx.load_model_from_string(buffer.getvalue())
+    onnx.helper.set_model_props(proto, policy_metadata(task, max_speed))
+    onnx.checker.check_model(proto)
+    data = proto.SerializeToString()
+    error = parity_error(model, data)
+    if not error < PARITY_TOLERANCE:
+        raise ExportError(
+            f"export parity check failed: onnxruntime vs torch max abs difference {error:.3g}"
+            f" >= {PARITY_TOLERANCE}"
+        )
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(data)
+    except OSError as exc:
+        raise UsageError(f"cannot write {out}: {exc.strerror or exc}") from None
+    return error
+
+
+def parity_error(model: ActorCritic, onnx_bytes: bytes, batch: int = 3, seed: int = 0) -> float:
+    """Max abs difference over all outputs for random images, including the extremes 0/255."""
+    rng = np.random.default_rng(seed)
+    images = rng.integers(0, 256, size=(batch, IMAGE_SIZE, IMAGE_SIZE, 3)).astype(np.float32)
+    images[0] = 0.0
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    session = ort.InferenceSession(onnx_bytes, options, providers=["CPUExecutionProvider"])
+    got = session.run(["mu", "log_std", "value"], {"obs": images})
+    with torch.no_grad():
+        want = [t.numpy() for t in model(torch.from_numpy(images))]
+    return max(float(np.max(np.abs(g - w))) for g, w in zip(got, want, strict=True))
+
+
+def export_checkpoint(checkpoint: str | Path, out: str | Path, opset: int = DEFAULT_OPSET) -> float:
+    state = load_checkpoint(checkpoint)
+    return export_model(
+        model_from_checkpoint(state),
+        out,
+        task=state.get("task", "forward"),
+        max_speed=state.get("max_speed", DEFAULT_MAX_SPEED),
+        opset=opset,
+    )

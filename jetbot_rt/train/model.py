@@ -1,0 +1,100 @@
+"""The actor-critic network: camera image in, wheel-command Gaussian and state value out.
+
+It takes the exact tensor the runtime feeds an ONNX policy -- ``[N, 224, 224, 3]`` float32
+RGB in 0..255 (NHWC, the rl_games layout) -- and does its own scaling and downsampling, so the
+exported graph needs no preprocessing outside it. Area pooling to 56x56 first: the scene (a
+red block on a plain floor) needs no more detail, and it keeps the net at ~0.2 M parameters
+(the seed's rl_games network had ~19 M).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+IMAGE_SIZE = 224
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    pool: int = 4
+    """Area-pooling factor applied to the 224x224 input before the first convolution."""
+    channels: tuple[int, int, int] = (16, 32, 32)
+    """Output channels of the three stride-2 convolutions."""
+    hidden: int = 128
+    """Width of the fully connected layer shared by the actor and critic heads."""
+    init_log_std: float = -0.5
+    """Initial log standard deviation of the action distribution."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ModelConfig:
+        return cls(**{**data, "channels": tuple(data["channels"])})
+
+
+def _layer_init(layer: nn.Module, gain: float) -> nn.Module:
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class ActorCritic(nn.Module):
+    def __init__(self, config: ModelConfig = ModelConfig()) -> None:
+        super().__init__()
+        self.config = config
+        c1, c2, c3 = config.channels
+        side = IMAGE_SIZE // config.pool
+        for _ in range(3):
+            side = (side + 1) // 2  # stride 2 with "same" padding
+        relu_gain = nn.init.calculate_gain("relu")
+        self.encoder = nn.Sequential(
+            _layer_init(nn.Conv2d(3, c1, 5, stride=2, padding=2), relu_gain),
+            nn.ReLU(),
+            _layer_init(nn.Conv2d(c1, c2, 3, stride=2, padding=1), relu_gain),
+            nn.ReLU(),
+            _layer_init(nn.Conv2d(c2, c3, 3, stride=2, padding=1), relu_gain),
+            nn.ReLU(),
+            nn.Flatten(),
+            _layer_init(nn.Linear(c3 * side * side, config.hidden), relu_gain),
+            nn.ReLU(),
+        )
+        self.mu_head = _layer_init(nn.Linear(config.hidden, 2), 0.01)
+        self.value_head = _layer_init(nn.Linear(config.hidden, 1), 1.0)
+        self.log_std = nn.Parameter(torch.full((2,), config.init_log_std))
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``obs``: ``[N, 224, 224, 3]`` RGB, 0..255 (any float or uint8 dtype).
+
+        Returns ``mu`` ``[N, 2]``, ``log_std`` ``[N, 2]``, ``value`` ``[N, 1]``.
+        """
+        return self.heads(self.preprocess(obs))
+
+    def preprocess(self, obs: torch.Tensor) -> torch.Tensor:
+        """Fixed part: area-pool NHWC 0..255 to NCHW 0..1 at 1/pool size. Nothing to learn,
+        so PPO runs it once per collected frame instead of once per epoch."""
+        pool, side = self.config.pool, IMAGE_SIZE // self.config.pool
+        pooled = obs.float().reshape(-1, side, pool, side, pool, 3).sum((2, 4))
+        return pooled.permute(0, 3, 1, 2) * (1.0 / (pool * pool * 255.0))
+
+    def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``x``: output of ``preprocess``."""
+        features = self.encoder(x)
+        mu = self.mu_head(features)
+        return mu, self.log_std.expand_as(mu), self.value_head(features)
+
+    def value(self, x: torch.Tensor) -> torch.Tensor:
+        """State value of preprocessed observations, ``[N]``."""
+        return self.heads(x)[2].squeeze(-1)
+
+    def distribution(self, x: torch.Tensor) -> tuple[torch.distributions.Normal, torch.Tensor]:
+        """Action distribution and value of preprocessed observations."""
+        mu, log_std, value = self.heads(x)
+        return torch.distributions.Normal(mu, log_std.exp()), value.squeeze(-1)
+
+
+def parameter_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

@@ -1,0 +1,158 @@
+"""``jetbot-train`` end to end, as a user runs it: a smoke training run whose checkpoint and
+ONNX the runtime loads and drives, resume, export with parity, eval JSON, and bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+from runner import run_cli
+
+pytest.importorskip("pybullet")
+
+JETBOT_TRAIN = shutil.which("jetbot-train") or str(Path(sys.executable).parent / "jetbot-train")
+METADATA = {
+    "jetbot_rt.layout": "NHWC",
+    "jetbot_rt.color_order": "RGB",
+    "jetbot_rt.pixel_range": "0-255",
+    "jetbot_rt.max_speed": "0.1",
+    "jetbot_rt.task": "forward",
+}
+
+
+def train_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([JETBOT_TRAIN, *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("smoke")
+    result = train_cli("train", "--task", "forward", "--timesteps", "256", "--num-envs", "1",
+                       "--out", str(out), "--seed", "3", "--no-progress")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def test_smoke_training_writes_checkpoint_onnx_metrics_and_curve(smoke_run):
+    for name in ("checkpoint.pt", "policy.onnx", "metrics.csv", "learning_curve.png"):
+        assert (smoke_run / name).stat().st_size > 0, name
+    rows = (smoke_run / "metrics.csv").read_text().splitlines()
+    assert rows[0].startswith("update,global_step,wall_s,steps_per_s")
+    assert [r.split(",")[1] for r in rows[1:]] == ["128", "256"]
+    assert (smoke_run / "policy.onnx").stat().st_size < 2_000_000
+
+
+def test_runtime_loads_and_drives_the_trained_onnx(smoke_run, tmp_path, monkeypatch):
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path))  # beside any other jetbot-rt
+    result = run_cli(["run", "--backend", "sim", "--policy", str(smoke_run / "policy.onnx"),
+                      "--duration", "1"], telemetry=tmp_path / "t.jsonl")
+    assert result.returncode == 0, result.stderr
+    ticks = result.ticks
+    assert len(ticks) >= 20
+    assert all(np.isfinite(t["mu"]).all() and len(t["cmd"]) == 2 for t in ticks)
+    assert any(abs(c) > 0 for t in ticks for c in t["cmd"])  # it did drive
+
+
+def test_resume_continues_the_step_count(smoke_run, tmp_path):
+    run = tmp_path / "resumed"
+    shutil.copytree(smoke_run, run)
+    result = train_cli("train", "--task", "forward", "--timesteps", "384", "--num-envs", "1",
+                       "--out", str(run), "--resume", "--no-progress")
+    assert result.returncode == 0, result.stderr
+    steps = [r.split(",")[1] for r in (run / "metrics.csv").read_text().splitlines()[1:]]
+    assert steps == ["128", "256", "384"]
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["global_step"] == 384 and state["update"] == 3
+
+
+def test_export_layout_metadata_and_parity(smoke_run, tmp_path):
+    out = tmp_path / "exported.onnx"
+    result = train_cli("export", "--checkpoint", str(smoke_run / "checkpoint.pt"),
+                       "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "max abs diff" in result.stdout
+    model = onnx.load(str(out))
+    assert model.opset_import[0].version == 16
+    props = {p.key: p.value for p in model.metadata_props}
+    assert METADATA.items() <= props.items()
+    assert "max_speed" in props["jetbot_rt.action"]
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    (obs,) = session.get_inputs()
+    assert obs.name == "obs" and obs.shape[1:] == [224, 224, 3] and obs.type == "tensor(float)"
+    assert [o.name for o in session.get_outputs()] == ["mu", "log_std", "value"]
+
+    from jetbot_rt.train.checkpoint import load_checkpoint, model_from_checkpoint
+
+    torch_model = model_from_checkpoint(load_checkpoint(smoke_run / "checkpoint.pt"))
+    images = np.random.default_rng(7).integers(0, 256, (4, 224, 224, 3)).astype(np.float32)
+    got = session.run(None, {"obs": images})
+    with torch.no_grad():
+        want = [t.numpy() for t in torch_model(torch.from_numpy(images))]
+    assert [g.shape for g in got] == [(4, 2), (4, 2), (4, 1)]
+    for g, w in zip(got, want, strict=True):
+        assert np.max(np.abs(g - w)) < 1e-4
+
+
+def test_eval_json_has_the_fields(smoke_run):
+    result = train_cli("eval", "--policy", str(smoke_run / "policy.onnx"), "--task", "forward",
+                       "--episodes", "1", "--num-envs", "1", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)  # stdout is exactly one JSON object
+    assert report["episodes"] == 1
+    assert 0.0 <= report["success_rate"] <= 1.0
+    assert np.isfinite(report["mean_return"]) and report["mean_final_distance"] > 0
+
+
+@pytest.mark.skipif(
+    not (Path(__file__).parents[1] / "jetbot_rt" / "policies" / "forward.onnx").exists(),
+    reason="no bundled policy",
+)
+def test_eval_without_policy_uses_the_bundled_one_and_it_reaches_the_block():
+    result = train_cli("eval", "--episodes", "2", "--num-envs", "2", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["policy"].endswith("jetbot_rt/policies/forward.onnx")
+    assert report["episodes"] == 2
+    assert report["mean_final_distance"] < 0.3
+
+
+def _one_line_exit_2(result: subprocess.CompletedProcess, needle: str) -> None:
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], result.stderr
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run):
+    a_file = tmp_path / "plain.txt"
+    a_file.write_text("not a checkpoint")
+    out = tmp_path / "m.onnx"
+    cases = [
+        (["train", "--task", "sideways", "--timesteps", "10", "--out", str(tmp_path / "x")],
+         "unknown task 'sideways'"),
+        (["train", "--timesteps", "0", "--out", str(tmp_path / "x")], "--timesteps"),
+        (["train", "--timesteps", "10", "--num-envs", "-1", "--out", str(tmp_path / "x")],
+         "--num-envs"),
+        (["train", "--timesteps", "10", "--out", str(a_file / "sub")], "cannot write"),
+        (["export", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(out)],
+         "does not exist"),
+        (["export", "--checkpoint", str(a_file), "--out", str(out)],
+         "not a jetbot-train checkpoint"),
+        (["export", "--checkpoint", str(smoke_run / "policy.onnx"), "--out", str(out)],
+         "not a jetbot-train checkpoint"),
+        (["export", "--checkpoint", str(smoke_run / "checkpoint.pt"), "--out",
+          str(a_file / "m.onnx")],
+         "cannot write"),
+        (["eval", "--task", "sideways", "--episodes", "1"], "unknown task"),
+        (["eval", "--policy", str(a_file), "--episodes", "1"], "not a loadable ONNX model"),
+        (["eval", "--episodes", "0"], "--episodes"),
+    ]
+    for args, needle in cases:
+        _one_line_exit_2(train_cli(*args), needle)
