@@ -84,8 +84,10 @@ class OnnxPolicy:
         return list(self.session.get_providers())
 
     @classmethod
-    def load(cls, path: str | Path, config: PolicyConfig | None = None) -> OnnxPolicy:
-        """Open and validate the model; every problem is a ``UsageError`` naming the file."""
+    def load(cls, path: str | Path, config: PolicyConfig | None = None,
+             threads: int | None = None) -> OnnxPolicy:
+        """Open and validate the model; every problem is a ``UsageError`` naming the file.
+        ``threads`` caps onnxruntime's CPU threads (parallel evaluation workers use 1)."""
         import onnxruntime as ort
 
         config = config or PolicyConfig()
@@ -97,6 +99,9 @@ class OnnxPolicy:
         providers = [p for p in wanted if p in available] or ["CPUExecutionProvider"]
         options = ort.SessionOptions()
         options.log_severity_level = 4  # errors reach the user through our own message
+        if threads is not None:
+            options.intra_op_num_threads = threads
+            options.inter_op_num_threads = threads
         try:
             session = ort.InferenceSession(str(path), options, providers=providers)
         except Exception as exc:  # onnxruntime raises several unrelated types for bad files

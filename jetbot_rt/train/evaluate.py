@@ -18,20 +18,9 @@ from jetbot_rt.train.env import JetbotEnv, action_pipeline_of, get_task
 
 
 def load_policy(path: str | Path, config: Config, single_thread: bool = True) -> OnnxPolicy:
-    """``OnnxPolicy.load`` (all of its checks); with ``single_thread`` its session is
-    reopened with one intra-op thread, so parallel eval workers do not fight over cores."""
-    policy = OnnxPolicy.load(path, config.policy)
-    if single_thread and policy.providers == ["CPUExecutionProvider"]:
-        import onnxruntime as ort
-
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = 1
-        options.inter_op_num_threads = 1
-        options.log_severity_level = 3
-        policy.session = ort.InferenceSession(
-            str(policy.path), options, providers=["CPUExecutionProvider"]
-        )
-    return policy
+    """``OnnxPolicy.load`` (all of its checks); with ``single_thread`` onnxruntime uses one
+    thread, so parallel eval workers do not fight over cores."""
+    return OnnxPolicy.load(path, config.policy, threads=1 if single_thread else None)
 
 
 def run_episode(env: JetbotEnv, policy: OnnxPolicy, seed: int | None,
