@@ -58,6 +58,9 @@ class LoopConfig:
     watchdog_timeout: float | None = field(default=None, metadata=_positive())
     """Seconds without a completed tick before the watchdog latches the safe stop.
     Default: three periods."""
+    warmup_timeout: float = field(default=300.0, metadata=_positive())
+    """Seconds the warm-up may take before the policy is refused; the first inference on a
+    Jetson may build a TensorRT engine, which takes minutes."""
     warmup_runs: int = field(default=3, metadata=_check(lambda v: 1 <= v <= 100, "1..100"))
     """Timed inferences before driving; if the fastest is slower than a period, refuse the run."""
 

@@ -14,6 +14,7 @@ import socket
 import struct
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
@@ -75,6 +76,14 @@ class ControlServer:
         self._inode: int | None = None
 
     def start(self) -> None:
+        try:
+            self._start()
+        except OSError as exc:
+            raise UsageError(
+                f"cannot create the control socket {self.path}: {exc.strerror or exc}"
+            ) from None
+
+    def _start(self) -> None:
         _private_dir(self.path.parent)
         if self.path.exists() or self.path.is_symlink():
             if _is_live(self.path):
@@ -151,13 +160,26 @@ def _candidates(path: Path | None) -> list[Path]:
     return paths
 
 
-def request_stop(path: Path | None = None, timeout: float = 0.5) -> bool:
-    """Ask a running runtime to latch its safe stop; True when one acknowledged.
+@dataclass
+class StopReply:
+    """What ``request_stop`` found: runtimes that latched, and sockets it could not reach
+    (a live runtime behind a permission error keeps driving, which the caller must say)."""
+
+    acknowledged: list[Path] = field(default_factory=list)
+    unreachable: list[str] = field(default_factory=list)
+
+    def __bool__(self) -> bool:
+        return bool(self.acknowledged)
+
+
+def request_stop(path: Path | None = None, timeout: float = 0.5) -> StopReply:
+    """Ask a running runtime to latch its safe stop.
 
     Without ``path``, tries the default socket, then (unless a runtime directory is set in
-    the environment) the systemd service's.
+    the environment) the systemd service's. A socket file nobody listens on (a runtime that
+    died) is neither acknowledged nor unreachable.
     """
-    acknowledged = False
+    reply = StopReply()
     for candidate in _candidates(path):
         if not candidate.exists():
             continue
@@ -166,10 +188,16 @@ def request_stop(path: Path | None = None, timeout: float = 0.5) -> bool:
         try:
             client.connect(str(candidate))
             client.sendall(b"stop\n")
-            reply = client.recv(_MAX_REQUEST)
-        except OSError:
+            answer = client.recv(_MAX_REQUEST)
+        except (ConnectionRefusedError, FileNotFoundError):
+            continue  # stale socket of a runtime that is gone
+        except OSError as exc:
+            reply.unreachable.append(f"{candidate}: {exc.strerror or exc}")
             continue
         finally:
             client.close()
-        acknowledged = acknowledged or reply.strip() == b"ok"
-    return acknowledged
+        if answer.strip() == b"ok":
+            reply.acknowledged.append(candidate)
+        else:
+            reply.unreachable.append(f"{candidate}: unexpected answer {answer[:40]!r}")
+    return reply

@@ -163,12 +163,13 @@ class OnnxPolicy:
     def _action_output(session: Any, path: Path) -> str:
         outputs = session.get_outputs()
         chosen = next((o for o in outputs if o.name == "mu"), outputs[0])
-        known = [d for d in chosen.shape if isinstance(d, int)]
-        count = int(np.prod(known[1:])) if len(chosen.shape) >= 2 else (known[0] if known else 2)
         if chosen.type not in ("tensor(float)", "tensor(float16)", "tensor(double)"):
             raise UsageError(f"policy {path}: expected float actions in output {chosen.name}, "
                              f"found {chosen.type}")
-        if len(known) == len(chosen.shape) and count != 2:
+        # [N, 2] with a symbolic batch N (our exporter's) or [1, 2]; [2] for a bare vector
+        action_dims = chosen.shape[1:] if len(chosen.shape) >= 2 else chosen.shape
+        fixed = all(isinstance(d, int) for d in action_dims)
+        if fixed and int(np.prod(action_dims)) != 2:
             raise UsageError(f"policy {path}: expected 2 actions [left, right] in output "
                              f"{chosen.name}, found shape {chosen.shape}")
         return chosen.name

@@ -8,6 +8,7 @@ driver). The watchdog has its own thread. Every way out writes zero to the drive
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import os
 import signal
@@ -118,7 +119,7 @@ class Runtime:
         if frame is None:
             raise UsageError("camera started but delivered no frame")
         period = self.config.loop.period
-        limit = max(5.0, 20 * period)
+        limit = self.config.loop.warmup_timeout
         timings: list[float] = []
         error: list[BaseException] = []
 
@@ -154,7 +155,15 @@ class Runtime:
 
     def _install_signal_handlers(self) -> None:
         def handler(signum: int, _frame: Any) -> None:
-            self.latch.trip(f"{STOP_SIGNALS.get(signum, signum)} received", fault=False)
+            # Python runs this in the main thread between two bytecodes, possibly while that
+            # thread holds the drive's or the telemetry's lock; tripping here could deadlock.
+            threading.Thread(
+                target=self.latch.trip,
+                args=(f"{STOP_SIGNALS.get(signum, signum)} received",),
+                kwargs={"fault": False},
+                name="jetbot-rt-signal",
+                daemon=True,
+            ).start()
 
         for signum in STOP_SIGNALS:
             signal.signal(signum, handler)
@@ -185,8 +194,9 @@ class Runtime:
             policy = self.prepare()
             assert self.drive is not None
             self.drive.stop()  # start from a known state: whatever the board held is cleared
-            self.warm_up(policy)
-            if self.latch.tripped:  # a signal during start-up
+            if not self.latch.tripped:  # a signal or stop request during start-up ends it here
+                self.warm_up(policy)
+            if self.latch.tripped:
                 return self._finish()
             return self._drive(policy)
         except BaseException:
@@ -226,8 +236,7 @@ class Runtime:
         # The latch is tripped (or the loop ended by itself); give a tick in flight a moment.
         loop_thread.join(max(1.0, 3 * loop_cfg.period))
         if loop_thread.is_alive():
-            self.latch.trip("control loop hung", fault=True)
-            result = self._finish(hung=True)
+            result = self._finish()
             sys.stdout.flush()
             sys.stderr.flush()
             # The loop thread is stuck in native code and cannot be joined; the motors are at
@@ -253,7 +262,7 @@ class Runtime:
         if self.drive is not None:
             self.drive.stop()  # the last write of the process is zero
 
-    def _finish(self, hung: bool = False) -> RunResult:
+    def _finish(self) -> RunResult:
         if not self.latch.tripped:
             self.latch.trip("loop ended", fault=False)
         self._final_stop()
@@ -273,6 +282,8 @@ class Runtime:
             )
         if self.backend is not None and self.backend.counters is not None:
             summary.update(self.backend.counters())
+        if self.drive is not None and self.drive.refused:
+            summary["writes_refused"] = self.drive.refused  # late writes the latch blocked
         if self.drive is not None and self.drive.stop_errors:
             summary["stop_errors"] = self.drive.stop_errors
         if self.telemetry.lost:
@@ -308,7 +319,8 @@ def print_summary(summary: dict[str, Any], rate_hz: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # A hang that systemd's watchdog ends with SIGABRT leaves every thread's stack in the journal.
-    faulthandler.enable()
+    with contextlib.suppress(ValueError, OSError, AttributeError):  # stderr without a file
+        faulthandler.enable(file=sys.__stderr__)
     runtime = Runtime(args)
     try:
         return runtime.run().exit_code
@@ -325,3 +337,8 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.flush()
             os._exit(EXIT_USAGE)
         raise
+    except Exception as exc:  # a bug or an unforeseen OS error: still a safe stop, one line
+        print(f"jetbot-rt run: unexpected error: {type(exc).__name__}: {first_line(exc)}",
+              file=sys.stderr)
+        runtime.latch.trip(f"unexpected error: {type(exc).__name__}: {first_line(exc)}")
+        return runtime._finish().exit_code

@@ -13,6 +13,9 @@ from collections.abc import Callable
 from jetbot_rt.errors import Fault
 from jetbot_rt.hal.base import Drive
 
+STOP_LOCK_TIMEOUT_S = 0.05
+"""How long a stop waits for a drive write in flight (an I2C write takes well under 1 ms)."""
+
 
 class SafeStopLatch:
     """Trips once; the first reason wins. ``on_trip`` callbacks run in the tripping thread."""
@@ -35,6 +38,8 @@ class SafeStopLatch:
     def trip(self, reason: str, *, fault: bool = True) -> bool:
         """Latch the stop. ``fault`` False for an orderly end (signal, duration). Returns True
         for the call that actually tripped it."""
+        if self._tripped.is_set():
+            return False
         with self._lock:
             if self._tripped.is_set():
                 return False
@@ -77,13 +82,22 @@ class GuardedDrive:
             return True
 
     def stop(self) -> None:
-        """Zero the motors by the drive's most direct means; never raises."""
-        with self._lock:
+        """Zero the motors by the drive's most direct means; never raises.
+
+        Waits a bounded time for a write in flight; if that write hangs (an I2C transfer
+        stuck in the driver), the stop goes out anyway: the kernel serialises the bus."""
+        locked = self._lock.acquire(timeout=STOP_LOCK_TIMEOUT_S)
+        try:
+            if not locked:
+                self.stop_errors.append("a drive write in flight did not return; stopped anyway")
             try:
                 self.drive.stop()
             except Exception as exc:  # the stop must not be lost to an exception; report it
                 self.stop_errors.append(f"{type(exc).__name__}: {exc}")
             self.last_cmd = (0.0, 0.0)
+        finally:
+            if locked:
+                self._lock.release()
 
 
 class Watchdog:
@@ -102,7 +116,6 @@ class Watchdog:
         self._kicked = threading.Condition()
         self._stopped = False
         self._thread = threading.Thread(target=self._run, name="jetbot-rt-watchdog", daemon=True)
-        self.t_expired: float | None = None
 
     def start(self) -> None:
         self.kick()
@@ -128,7 +141,6 @@ class Watchdog:
                     self._kicked.wait(remaining)
                     continue
                 silence = self.clock() - self._last_kick
-                self.t_expired = self.clock()
                 break
             else:
                 return

@@ -199,12 +199,13 @@ def slow(path: Path, iterations: int, mu: tuple[float, float] = (1.0, 1.0)) -> P
     return _save(graph, path)
 
 
-def three_actions(path: Path) -> Path:
+def three_actions(path: Path, batch: int | str = 1) -> Path:
+    """``mu`` of shape [batch, 3]; ``batch="N"`` declares a symbolic batch as exporters do."""
     graph = helper.make_graph(
         [helper.make_node("ReduceMean", ["obs"], ["m"], keepdims=0),
          helper.make_node("Add", ["c", "m"], ["mu"])],
         "three", [_input("NHWC", 224)],
-        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 3])],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [batch, 3])],
         [numpy_helper.from_array(np.zeros((1, 3), np.float32), "c")],
     )
     return _save(graph, path)

@@ -25,6 +25,7 @@ OUT_OF_RANGE = {
     ("loop", "rate_hz"): 0,
     ("loop", "max_frame_age"): -0.1,
     ("loop", "watchdog_timeout"): 0,
+    ("loop", "warmup_timeout"): 0,
     ("loop", "warmup_runs"): 101,
     ("policy", "path"): None,  # any string is a path: a missing one is a model case below
     ("policy", "layout"): "NWHC",
@@ -193,11 +194,11 @@ def test_broken_models_are_refused_before_any_motor_command(tmp_path, case) -> N
 
 @pytest.mark.slow
 def test_a_policy_that_hangs_on_its_first_frame_is_refused_at_warm_up(tmp_path) -> None:
-    """The warm-up runs in a thread with a time limit (max(5 s, 20 periods)): a model that
+    """The warm-up runs in a thread with a time limit ([loop] warmup_timeout): a model that
     never returns is a usage error, and the process ends although that thread cannot."""
     policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
-    rt = RuntimeProcess(tmp_path, "sim", policy, config="[sim]\nblackout = [0.0, 1000.0]\n",
-                        duration=5.0)
+    config = "[sim]\nblackout = [0.0, 1000.0]\n[loop]\nwarmup_timeout = 5.0\n"
+    rt = RuntimeProcess(tmp_path, "sim", policy, config=config, duration=5.0)
     try:
         result = rt.start().finish(60)
     finally:

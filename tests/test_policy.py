@@ -102,6 +102,12 @@ def test_unsupported_models(tmp_path, build, message):
     assert message in str(info.value) and str(path) in str(info.value)
 
 
+def test_three_actions_with_a_symbolic_batch_are_refused_at_load(tmp_path):
+    path = policy_models.three_actions(tmp_path / "m.onnx", batch="N")
+    with pytest.raises(UsageError, match=r"expected 2 actions \[left, right\] in output mu"):
+        OnnxPolicy.load(path)
+
+
 def test_missing_and_corrupt_files(tmp_path):
     with pytest.raises(UsageError, match="no such file"):
         OnnxPolicy.load(tmp_path / "missing.onnx")

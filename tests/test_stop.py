@@ -163,3 +163,33 @@ def test_stop_loads_no_camera_policy_or_torch(tmp_path) -> None:
                             timeout=30, env=env)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_stop_with_a_broken_config_still_turns_the_board_off(tmp_path) -> None:
+    chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+    WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0).write(0.6, 0.6)
+    config = tmp_path / "robot.toml"
+    config.write_text("[motors]\nlayout = 'edited-while-running'\n")
+    result = stop_command(tmp_path, "--config", str(config))
+    assert result.returncode == 2
+    assert "[motors] layout must be one of" in result.stderr
+    assert "using the default bus and address" in result.stderr
+    assert chip.refresh().all_off()
+
+
+def test_stop_reports_a_runtime_it_could_not_reach(tmp_path) -> None:
+    # A socket that accepts but never answers: a runtime stuck, or one we may not talk to.
+    sock_path = tmp_path / "run" / "control.sock"
+    sock_path.parent.mkdir(mode=0o700)
+    silent = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    silent.bind(str(sock_path))
+    silent.listen(1)
+    chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+    WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0).write(0.6, 0.6)
+    try:
+        result = stop_command(tmp_path)
+    finally:
+        silent.close()
+    assert result.returncode == 1
+    assert "a runtime may still be driving" in result.stderr
+    assert chip.refresh().all_off()  # the hardware stop was still written

@@ -18,6 +18,7 @@ import re
 import shlex
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections import deque
@@ -64,9 +65,14 @@ def full_pipeline(camera: CameraConfig, width: int, height: int) -> str:
     )
 
 
+# Loaded here, in the parent: dlopen inside preexec_fn (after fork, in a process with other
+# threads) could deadlock on a lock another thread held at the fork.
+_LIBC = ctypes.CDLL(None, use_errno=True)
+_PRCTL = _LIBC.prctl
+
+
 def _die_with_parent(parent_pid: int) -> None:  # runs in the child between fork and exec
-    libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent_pid:  # the parent died before prctl took effect
         os._exit(1)
 
@@ -137,7 +143,12 @@ class GstCamera(Camera):
             return
         if process.poll() is None:
             process.kill()
-        process.wait()
+        try:
+            process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:  # stuck in the kernel (a driver); do not hang the exit
+            print(f"jetbot-rt: camera process {process.pid} did not exit after SIGKILL",
+                  file=sys.stderr)
+            return
         for thread in self._threads:
             thread.join(1.0)
         for stream in (process.stdout, process.stderr):

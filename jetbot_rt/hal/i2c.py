@@ -34,8 +34,12 @@ def open_smbus(bus_number: int, emulated_address: int = 0x60) -> Any:
         from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
 
         return PCA9685Emulator(address=emulated_address, state_file=state_file)
-    from smbus2 import SMBus
-
+    try:
+        from smbus2 import SMBus
+    except ImportError:
+        raise UsageError(
+            "the real backend needs smbus2: pip install 'jetbot_rt[jetson]'"
+        ) from None
     try:
         return SMBus(bus_number)
     except OSError as exc:

@@ -1,0 +1,18 @@
+"""A backend whose camera fails with an error nobody planned for (a driver bug)."""
+
+from jetbot_rt.hal.base import Backend
+from jetbot_rt.hal.null import NullCamera, NullDrive
+
+DRIVES: list[NullDrive] = []
+
+
+class BrokenCamera(NullCamera):
+    def start(self) -> None:
+        raise RuntimeError("driver bug")
+
+
+def build_backend(config, options):
+    drive = NullDrive()
+    drive.last = (0.5, 0.5)  # as if a previous owner left the board driving
+    DRIVES.append(drive)
+    return Backend(camera=BrokenCamera(), drive=drive)
