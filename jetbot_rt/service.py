@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     if protect_home(executable, config) != "yes":
         print("note: this installation lives under /home or /root, so the unit uses "
               "ProtectHome=read-only; a venv in /opt/jetbot-rt keeps home directories hidden")
-    print_next_steps(root, args.user, config)
+    print_next_steps(root, args.user, config, executable)
     return 0
 
 
@@ -212,7 +212,7 @@ def write_file(path: Path, text: str) -> None:
         raise UsageError(f"cannot write {path}: {exc.strerror or exc}{hint}") from None
 
 
-def print_next_steps(root: Path, user: str, config: PurePosixPath) -> None:
+def print_next_steps(root: Path, user: str, config: PurePosixPath, executable: Path) -> None:
     if root.resolve() != Path("/"):
         print(f"(staged under {root}; run these on the target once the tree is in place)")
     steps = [
@@ -221,7 +221,8 @@ def print_next_steps(root: Path, user: str, config: PurePosixPath) -> None:
         ("sudo systemctl enable --now jetbot-rt", "start now and at every boot"),
         ("systemctl status jetbot-rt", "state and the loop's STATUS= line"),
         ("journalctl -u jetbot-rt -f", "follow the log"),
-        (f"sudo jetbot-rt stop --config {config}", "stop the robot from any shell"),
+        # absolute: a venv's bin/ is not on sudo's secure_path
+        (f"sudo {executable} stop --config {config}", "stop the robot from any shell"),
     ]
     width = max(len(command) for command, _ in steps)
     print("next:")
