@@ -7,6 +7,7 @@ metadata get the rl_games/Isaac Lab defaults: NHWC, RGB, float32, values 0..255.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,25 @@ _DTYPES = {
     "tensor(float16)": np.float16,
     "tensor(uint8)": np.uint8,
 }
+
+
+def tensorrt_cache_dir() -> Path:
+    """Where TensorRT engines are kept between starts (the service's HOME is its state dir)."""
+    return Path(os.environ.get("JETBOT_RT_CACHE_DIR") or Path.home() / ".cache" / "jetbot_rt")
+
+
+def provider_options(providers: list[str]) -> list[str | tuple[str, dict[str, str]]]:
+    """TensorRT builds an engine on the first inference (minutes on a Jetson); caching it
+    makes every later start take seconds."""
+    result: list[str | tuple[str, dict[str, str]]] = []
+    for name in providers:
+        if name == "TensorrtExecutionProvider":
+            cache = tensorrt_cache_dir() / "tensorrt"
+            result.append((name, {"trt_engine_cache_enable": "True",
+                                  "trt_engine_cache_path": str(cache)}))
+        else:
+            result.append(name)
+    return result
 
 
 def bundled_policy_path() -> Path:
@@ -103,7 +123,9 @@ class OnnxPolicy:
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = threads
         try:
-            session = ort.InferenceSession(str(path), options, providers=providers)
+            session = ort.InferenceSession(
+                str(path), options, providers=provider_options(providers)
+            )
         except Exception as exc:  # onnxruntime raises several unrelated types for bad files
             raise UsageError(
                 f"policy {path}: not a loadable ONNX model ({first_line(exc)})"

@@ -6,7 +6,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from jetbot_rt.config import PolicyConfig
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.policy import OnnxPolicy
+from jetbot_rt.policy import OnnxPolicy, provider_options
 
 RED = np.zeros((224, 224, 3), np.uint8)
 RED[..., 0] = 255
@@ -106,6 +106,14 @@ def test_three_actions_with_a_symbolic_batch_are_refused_at_load(tmp_path):
     path = policy_models.three_actions(tmp_path / "m.onnx", batch="N")
     with pytest.raises(UsageError, match=r"expected 2 actions \[left, right\] in output mu"):
         OnnxPolicy.load(path)
+
+
+def test_tensorrt_gets_an_engine_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("JETBOT_RT_CACHE_DIR", str(tmp_path))
+    options = provider_options(["TensorrtExecutionProvider", "CPUExecutionProvider"])
+    assert options[0] == ("TensorrtExecutionProvider", {
+        "trt_engine_cache_enable": "True", "trt_engine_cache_path": str(tmp_path / "tensorrt")})
+    assert options[1] == "CPUExecutionProvider"
 
 
 def test_missing_and_corrupt_files(tmp_path):
