@@ -9,6 +9,7 @@ Exit 1 if any row fails.
 from __future__ import annotations
 
 import argparse
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -63,9 +64,19 @@ def check_motor_board(config: Config) -> str:
     )
 
 
+def _interrupt(signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
 def spin_wheels(config: Config) -> str:
+    from jetbot_rt.control import _is_live, default_socket_path
     from jetbot_rt.hal.motors import open_drive
 
+    if _is_live(default_socket_path()):
+        raise RuntimeError("a jetbot-rt runtime is driving; stop it first (jetbot-rt stop)")
+    # SIGTERM/SIGHUP mid-pulse must reach the finally below, like Ctrl-C does.
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, _interrupt)
     drive = open_drive(config.motors)
     try:
         for left, right in ((SPIN_DUTY, 0.0), (0.0, SPIN_DUTY)):
