@@ -69,10 +69,10 @@ def _interrupt(signum: int, _frame: Any) -> None:
 
 
 def spin_wheels(config: Config) -> str:
-    from jetbot_rt.control import _is_live, default_socket_path
+    from jetbot_rt.control import default_socket_path, runtime_answers
     from jetbot_rt.hal.motors import open_drive
 
-    if _is_live(default_socket_path()):
+    if runtime_answers(default_socket_path()):
         raise RuntimeError("a jetbot-rt runtime is driving; stop it first (jetbot-rt stop)")
     # SIGTERM/SIGHUP mid-pulse must reach the finally below, like Ctrl-C does.
     for signum in (signal.SIGTERM, signal.SIGHUP):

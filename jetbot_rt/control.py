@@ -46,7 +46,7 @@ def _peer_pid(conn: socket.socket) -> int:
     return struct.unpack("3i", creds)[0]
 
 
-def _is_live(path: Path) -> bool:
+def runtime_answers(path: Path) -> bool:
     probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     probe.settimeout(0.5)
     try:
@@ -86,7 +86,7 @@ class ControlServer:
     def _start(self) -> None:
         _private_dir(self.path.parent)
         if self.path.exists() or self.path.is_symlink():
-            if _is_live(self.path):
+            if runtime_answers(self.path):
                 raise UsageError(
                     f"another jetbot-rt is running (control socket {self.path} answers); "
                     "stop it first with: jetbot-rt stop"
