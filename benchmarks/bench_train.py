@@ -1,7 +1,8 @@
 """Training benchmarks: end-to-end PPO throughput, the bundled policy's training run and its
 evaluation. Writes benchmarks/results/train.json and train.md.
 
-    python benchmarks/bench_train.py --train-run runs/forward          # all three
+    python benchmarks/bench_train.py --train-run runs/forward --command "jetbot-train ..." \
+        --command-wall-s 398                                            # all three
     python benchmarks/bench_train.py --throughput-steps 2048 --episodes 0   # throughput only
 
 Timings depend on what else the machine runs; the recorded ones say what the CPU was shared with.
@@ -72,7 +73,12 @@ def write_markdown(result: dict, path: Path) -> None:
             f"- command: `{result.get('bundled_command', '')}`",
             f"- {b['timesteps']} env steps in **{b['training_wall_s']:.0f} s** "
             f"({b['training_wall_s'] / 60:.1f} min) of training wall-clock, "
-            f"{b['env_steps_per_s']} env steps/s", "",
+            f"{b['env_steps_per_s']} env steps/s"
+            + (f"; the whole command (worker start, training, ONNX export, curve) "
+               f"{b['command_wall_s']:.0f} s" if b.get("command_wall_s") else ""),
+            f"- training episodes at the end (last 20, stochastic actions): success "
+            f"{b['last_train_success_rate']:.0%}, mean final distance "
+            f"{b['last_train_mean_final_distance']:.3f} m", "",
         ]
     if "eval" in result:
         e = result["eval"]
@@ -93,6 +99,8 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--train-run", type=Path, help="output dir of the bundled policy's run")
     parser.add_argument("--command", default="", help="the command that made --train-run")
+    parser.add_argument("--command-wall-s", type=float,
+                        help="wall-clock of that whole command, timed outside it")
     parser.add_argument("--episodes", type=int, default=100, help="0: skip the evaluation")
     parser.add_argument("--note", default="", help="e.g. what else shared the CPU")
     args = parser.parse_args()
@@ -108,7 +116,9 @@ def main() -> None:
         result["throughput"] = measure_throughput(args.throughput_steps, args.num_envs)
     if args.train_run is not None:
         result["bundled_training"] = read_training_run(args.train_run)
-        result["bundled_command"] = args.command
+        if args.command_wall_s is not None:
+            result["bundled_training"]["command_wall_s"] = args.command_wall_s
+        result["bundled_command"] = args.command or result.get("bundled_command", "")
     if args.episodes > 0:
         from jetbot_rt.train.evaluate import evaluate
 

@@ -126,3 +126,17 @@ def test_unknown_task_is_a_usage_error():
 def test_reward_is_the_seed_formula():
     assert forward_reward(0.5) == pytest.approx(np.exp(2.0) - 30.0)
     assert np.isfinite(forward_reward(0.0))
+
+
+def test_aim_error_is_the_blocks_offset_from_the_line_of_travel(env):
+    _, info = env.reset(options={"robot_pose": (-0.6, 0.0, 0.0)})
+    assert info["aim_error"] == pytest.approx(0.0, abs=1e-3)
+    for yaw in (0.15, -0.15):
+        _, info = env.reset(options={"robot_pose": (-0.6, 0.0, yaw)})
+        assert info["aim_error"] == pytest.approx(0.9 * np.sin(0.15), abs=2e-3)
+    _, info = env.reset(options={"robot_pose": (-0.6, 0.0, np.pi)})  # block behind
+    assert info["aim_error"] == pytest.approx(info["distance"], abs=2e-3)
+    # Turning towards the block (clockwise, from yaw +0.15) shrinks it on the way.
+    _, before = env.reset(options={"robot_pose": (-0.6, 0.0, 0.15)})
+    errors = [env.step(np.array([1.0, -1.0]))[4]["aim_error"] for _ in range(10)]
+    assert min(errors) < before["aim_error"] - 0.05

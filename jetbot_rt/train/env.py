@@ -127,10 +127,21 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
             x, y, yaw = x + float(dx), y + float(dy), yaw + float(dyaw)
         return (x, y, yaw)
 
+    def _aim_error(self) -> float:
+        """m; how far the block's centre lies from the robot's line of travel (the distance
+        to it when the block is beside or behind the robot). 0 when aimed straight at it."""
+        x, y, yaw = self.world.robot_pose()
+        bx, by, _ = self.world.block_position()
+        dx, dy = bx - x, by - y
+        bearing = math.atan2(dy, dx) - yaw
+        bearing = abs(math.atan2(math.sin(bearing), math.cos(bearing)))
+        return math.hypot(dx, dy) * math.sin(min(bearing, math.pi / 2))
+
     def _info(self, duties: tuple[float, float]) -> dict[str, Any]:
         distance = self.world.distance_to_block()
         return {
             "distance": distance,
+            "aim_error": self._aim_error(),
             "is_success": distance < self.task.success_distance,
             "pose": np.array(self.world.robot_pose()),
             "duty": np.array(duties),
