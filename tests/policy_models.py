@@ -155,8 +155,10 @@ def raise_when_dark(path: Path, mu: tuple[float, float] = (1.0, 1.0)) -> Path:
     return _save(graph, path)
 
 
-def slow(path: Path, iterations: int, mu: tuple[float, float] = (1.0, 1.0)) -> Path:
-    """A constant policy that first multiplies a 64x64 matrix ``iterations`` times."""
+def _matmul_work(name: str, mu: tuple[float, float], trip_nodes: list[onnx.NodeProto],
+                 trip_inits: list[onnx.TensorProto], path: Path) -> Path:
+    """mu after a Loop that multiplies a 64x64 matrix ``trips`` times (``trip_nodes`` make
+    ``trips``): inference time grows with the trip count, inside onnxruntime."""
     body = helper.make_graph(
         [
             helper.make_node("Identity", ["cond_in"], ["cond_out"]),
@@ -179,6 +181,7 @@ def slow(path: Path, iterations: int, mu: tuple[float, float] = (1.0, 1.0)) -> P
         ],
     )
     nodes = [
+        *trip_nodes,
         *_mu_from_obs(mu)[:2],
         helper.make_node("Loop", ["trips", "true", "m0"], ["m_end"], body=body),
         helper.make_node("ReduceSum", ["m_end"], ["m_sum"], keepdims=0),
@@ -188,16 +191,21 @@ def slow(path: Path, iterations: int, mu: tuple[float, float] = (1.0, 1.0)) -> P
     ]
     inits = [
         *_mu_initializers(mu),
-        numpy_helper.from_array(np.array(iterations, np.int64), "trips"),
+        *trip_inits,
         numpy_helper.from_array(np.array(True), "true"),
         numpy_helper.from_array(np.ones((64, 64), np.float32), "m0"),
     ]
     graph = helper.make_graph(
-        nodes, "slow", [_input("NHWC", 224)],
+        nodes, name, [_input("NHWC", 224)],
         [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])], inits,
     )
     return _save(graph, path)
 
+
+def slow(path: Path, iterations: int, mu: tuple[float, float] = (1.0, 1.0)) -> Path:
+    """A constant policy that first multiplies a 64x64 matrix ``iterations`` times."""
+    trips = [numpy_helper.from_array(np.array(iterations, np.int64), "trips")]
+    return _matmul_work("slow", mu, [], trips, path)
 
 def three_actions(path: Path, batch: int | str = 1) -> Path:
     """``mu`` of shape [batch, 3]; ``batch="N"`` declares a symbolic batch as exporters do."""
@@ -257,51 +265,16 @@ def inf_when_dark(path: Path, mu: tuple[float, float] = (1.0, 1.0)) -> Path:
 def slow_when_dark(path: Path, iterations: int, mu: tuple[float, float] = (1.0, 1.0)) -> Path:
     """Like ``slow``, but the 64x64 matrix loop runs ``iterations`` times only on a black frame
     (once otherwise): fast enough for warm-up, slower than a period while the lens is dark."""
-    body = helper.make_graph(
-        [
-            helper.make_node("Identity", ["cond_in"], ["cond_out"]),
-            helper.make_node("MatMul", ["m_in", "w"], ["m_prod"]),
-            helper.make_node("Mul", ["m_prod", "decay"], ["m_out"]),
-        ],
-        "work",
-        [
-            helper.make_tensor_value_info("i", TensorProto.INT64, []),
-            helper.make_tensor_value_info("cond_in", TensorProto.BOOL, []),
-            helper.make_tensor_value_info("m_in", TensorProto.FLOAT, [64, 64]),
-        ],
-        [
-            helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
-            helper.make_tensor_value_info("m_out", TensorProto.FLOAT, [64, 64]),
-        ],
-        [
-            numpy_helper.from_array(np.eye(64, dtype=np.float32), "w"),
-            numpy_helper.from_array(np.array(0.5, np.float32), "decay"),
-        ],
-    )
-    nodes = [
+    trip_nodes = [
         *_dark_condition(),
         helper.make_node("Where", ["dark", "many", "once"], ["trips"]),
-        *_mu_from_obs(mu)[:2],
-        helper.make_node("Loop", ["trips", "true", "m0"], ["m_end"], body=body),
-        helper.make_node("ReduceSum", ["m_end"], ["m_sum"], keepdims=0),
-        helper.make_node("Mul", ["m_sum", "zero"], ["m_zero"]),
-        helper.make_node("Add", ["zeroed", "m_zero"], ["offset"]),
-        helper.make_node("Add", ["mu_const", "offset"], ["mu"]),
     ]
-    inits = [
-        *_mu_initializers(mu),
+    trip_inits = [
         numpy_helper.from_array(np.array(1.0, np.float32), "one"),
         numpy_helper.from_array(np.array(iterations, np.int64), "many"),
         numpy_helper.from_array(np.array(1, np.int64), "once"),
-        numpy_helper.from_array(np.array(True), "true"),
-        numpy_helper.from_array(np.ones((64, 64), np.float32), "m0"),
     ]
-    graph = helper.make_graph(
-        nodes, "slow_when_dark", [_input("NHWC", 224)],
-        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])], inits,
-    )
-    return _save(graph, path)
-
+    return _matmul_work("slow_when_dark", mu, trip_nodes, trip_inits, path)
 
 def _mean_graph(name: str, inputs: list, outputs: list, nodes: list | None = None,
                 inits: list | None = None) -> onnx.GraphProto:
