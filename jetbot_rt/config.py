@@ -83,6 +83,9 @@ class PolicyConfig:
     """Override the channel order the model expects (metadata, else RGB)."""
     pixel_range: str | None = field(default=None, metadata=_one_of(PIXEL_RANGES))
     """Override the pixel range the model expects (metadata, else 0-255)."""
+    threads: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 64, "1..64"))
+    """onnxruntime CPU threads. One keeps a tick from waiting on a worker thread that the
+    scheduler has not woken yet; raise it for a large model on the CPU."""
     providers: list[str] | None = None
     """onnxruntime execution providers in order; default TensorRT, CUDA, CPU (those present)."""
 

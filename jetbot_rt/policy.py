@@ -107,7 +107,7 @@ class OnnxPolicy:
     def load(cls, path: str | Path, config: PolicyConfig | None = None,
              threads: int | None = None) -> OnnxPolicy:
         """Open and validate the model; every problem is a ``UsageError`` naming the file.
-        ``threads`` caps onnxruntime's CPU threads (parallel evaluation workers use 1)."""
+        ``threads`` overrides ``config.threads``, onnxruntime's CPU threads."""
         import onnxruntime as ort
 
         config = config or PolicyConfig()
@@ -124,9 +124,9 @@ class OnnxPolicy:
         # the sim or the Jetson's power budget need.
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         options.add_session_config_entry("session.inter_op.allow_spinning", "0")
-        if threads is not None:
-            options.intra_op_num_threads = threads
-            options.inter_op_num_threads = threads
+        threads = threads if threads is not None else config.threads
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = threads
         try:
             session = ort.InferenceSession(
                 str(path), options, providers=provider_options(providers)

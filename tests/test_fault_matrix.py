@@ -54,6 +54,9 @@ def timeline_camera(mark: str, normal: int, dark: int | None, then_normal: bool 
     return " ".join(parts) + " concat name=c ! identity sync=true"
 
 
+STARTUP_S = 1.0
+
+
 def dark_after(seconds: float, until: float = 1000.0, then_normal: bool = False):
     """The lens goes black ``seconds`` into the run: the sim's ``blackout`` (simulated time),
     or a camera timeline (wall time, 30 fps) for the real backend."""
@@ -61,8 +64,10 @@ def dark_after(seconds: float, until: float = 1000.0, then_normal: bool = False)
         return f"[sim]\nblackout = [{seconds}, {until}]\n"
 
     def real(mark: str) -> str:
+        # The timeline starts with gst-launch, before the policy's warm-up: give the start-up
+        # (about a second on a loaded machine) its own frames, so the loop drives a while first.
         dark = None if until >= 1000 else round((until - seconds) * 30)
-        return timeline_camera(mark, round(seconds * 30), dark, then_normal)
+        return timeline_camera(mark, round((seconds + STARTUP_S) * 30), dark, then_normal)
 
     return sim, real
 
