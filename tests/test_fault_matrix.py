@@ -146,7 +146,10 @@ def i2c_noise(rt: RuntimeProcess, _mark: str) -> None:
     for _ in range(3):
         rt.chip.update(fail_next=2)
         assert wait_for(lambda: rt.chip.refresh().fail_next == 0, 10.0) is not None
-        assert not rt.chip.all_off(), "still driving after the retried transfers"
+        # fail_next reaches 0 when the second failure happens, before the retry that succeeds:
+        # let that retry and a few ticks land, or the next burst would hit the same transfer.
+        time.sleep(0.15)
+        assert not rt.chip.refresh().all_off(), "still driving after the retried transfers"
         time.sleep(0.2)
     os.kill(rt.pid, signal.SIGTERM)
 
