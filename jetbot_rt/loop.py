@@ -30,9 +30,7 @@ class LoopStats:
     ticks: int = 0
     overruns: int = 0
     tick_ms: Histogram = field(default_factory=Histogram)
-    late_ms: Histogram = field(default_factory=Histogram)
     infer_ms: Histogram = field(default_factory=Histogram)
-    frame_age_ms: Histogram = field(default_factory=Histogram)
     t_start: float | None = None
     t_end: float | None = None
 
@@ -142,13 +140,13 @@ class ControlLoop:
         tick_ms = (t_end - t_start) * 1e3
         infer_ms = (t_act - t_infer) * 1e3
         stats.tick_ms.add(tick_ms)
-        stats.late_ms.add((t_start - deadline) * 1e3)
         stats.infer_ms.add(infer_ms)
-        stats.frame_age_ms.add(frame_age * 1e3)
         if self.watchdog is not None:
             self.watchdog.kick()
         if self.on_tick_done is not None:
             self.on_tick_done(t_end)
+        if not self.telemetry.enabled:
+            return
         record: dict[str, Any] = {
             "t": round(t_start - self.telemetry.t0, 6),
             "tick": stats.ticks,

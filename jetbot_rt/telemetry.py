@@ -37,6 +37,10 @@ class Telemetry:
                     f"cannot write telemetry {self.path}: {exc.strerror or exc}"
                 ) from None
 
+    @property
+    def enabled(self) -> bool:
+        return self._file is not None
+
     def _write(self, record: dict[str, Any]) -> None:
         if self._file is None:
             return

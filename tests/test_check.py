@@ -10,6 +10,7 @@ from pathlib import Path
 import policy_models
 import pytest
 
+from jetbot_rt.check import SPIN_DUTY
 from jetbot_rt.hal.i2c import EMULATOR_ENV
 from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
 
@@ -65,7 +66,10 @@ def test_spin_pulses_and_ends_with_everything_off(robot) -> None:
     assert result.returncode == 0, result.stdout + result.stderr
     assert "spin" in rows(result.stdout)
     chip.refresh()
-    assert not chip.sleeping  # the board was set up and driven
+    # waveshare: left forward is the duty on channel 1, right forward on channel 2
+    assert chip.peak_duty[1] == pytest.approx(SPIN_DUTY, abs=0.01)
+    assert chip.peak_duty[2] == pytest.approx(SPIN_DUTY, abs=0.01)
+    assert chip.peak_duty[0] == chip.peak_duty[3] == 0.0  # never reverse
     assert chip.all_off()
 
 

@@ -1,12 +1,11 @@
 """End to end: ``jetbot-rt run --backend sim`` in a subprocess, real onnxruntime and PyBullet."""
 
-import signal
 import subprocess
 import sys
 
 import policy_models
 import pytest
-from runner import run_cli, run_until
+from runner import run_cli
 
 PERIOD = 1 / 30
 
@@ -60,69 +59,42 @@ def test_forward_policy_drives_toward_the_block(tmp_path):
     assert abs(last[1]) < 0.02 and abs(last[2]) < 0.1  # straight
 
 
-def test_watchdog_trips_on_a_policy_that_hangs(tmp_path):
-    policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
-    config = write_config(tmp_path, "[sim]\nblackout = [0.5, 100.0]\n")
-    result = run_cli(
+def run_with_fault(tmp_path, policy, config_text):
+    """Drive until the injected fault ends the run (20 s at most)."""
+    config = write_config(tmp_path, config_text)
+    return run_cli(
         ["run", "--backend", "sim", "--policy", str(policy), "--config", str(config),
          "--duration", "20"],
         telemetry=tmp_path / "t.jsonl",
     )
+
+
+# The issue's own bounds for these two; the fault matrix (tests/test_fault_matrix.py) covers
+# NaN, onnxruntime errors and signals on sim and hardware with generous bounds.
+def test_watchdog_trips_on_a_policy_that_hangs(tmp_path):
+    policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
+    result = run_with_fault(tmp_path, policy, "[sim]\nblackout = [0.5, 100.0]\n")
     assert result.returncode == 3, result.stderr
     stop = result.events("safe_stop")[0]
     assert stop["reason"].startswith("watchdog: no tick for")
     last_tick = result.ticks[-1]
     last_tick_end = last_tick["t"] + last_tick["tick_ms"] / 1e3
-    timeout = 3 * PERIOD
-    # the safe_stop event is logged after the drive was zeroed
-    assert stop["t"] - last_tick_end <= timeout + PERIOD
+    # the safe_stop event is logged after the drive was zeroed: within timeout + one period
+    assert stop["t"] - last_tick_end <= 3 * PERIOD + PERIOD
     assert_ends_at_zero(result)
     assert "Traceback" not in result.stderr
 
 
 def test_stalled_camera_makes_frames_stale_and_stops(tmp_path):
     policy = policy_models.constant(tmp_path / "p.onnx", (1.0, 1.0))
-    config = write_config(
-        tmp_path, "[sim]\ncamera_stall_after = 0.5\n[loop]\nmax_frame_age = 0.1\n"
-    )
-    result = run_cli(
-        ["run", "--backend", "sim", "--policy", str(policy), "--config", str(config),
-         "--duration", "20"],
-        telemetry=tmp_path / "t.jsonl",
+    result = run_with_fault(
+        tmp_path, policy, "[sim]\ncamera_stall_after = 0.5\n[loop]\nmax_frame_age = 0.1\n"
     )
     assert result.returncode == 3, result.stderr
     stop = result.events("safe_stop")[0]
     assert stop["reason"].startswith("stale frame")
     newest_capture = max(r["t"] - r["frame_age_ms"] / 1e3 for r in result.ticks)
     assert stop["t"] - newest_capture <= 0.1 + 2 * PERIOD
-    assert_ends_at_zero(result)
-
-
-@pytest.mark.parametrize(("build", "reason"), [
-    (policy_models.nan_when_dark, "non-finite action"),
-    (policy_models.raise_when_dark, "policy inference failed"),
-])
-def test_faults_in_the_policy_end_in_a_safe_stop(tmp_path, build, reason):
-    policy = build(tmp_path / "p.onnx")
-    config = write_config(tmp_path, "[sim]\nblackout = [0.3, 100.0]\n")
-    result = run_cli(
-        ["run", "--backend", "sim", "--policy", str(policy), "--config", str(config),
-         "--duration", "20"],
-        telemetry=tmp_path / "t.jsonl",
-    )
-    assert result.returncode == 3, result.stderr
-    assert result.events("safe_stop")[0]["reason"].startswith(reason)
-    assert_ends_at_zero(result)
-
-
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_signal_ends_the_run_with_zero_last(tmp_path, sig):
-    policy = policy_models.constant(tmp_path / "p.onnx", (1.0, 1.0))
-    result = run_until(["run", "--backend", "sim", "--policy", str(policy)],
-                       tmp_path / "t.jsonl", ticks=10, sig=sig)
-    assert result.returncode == 0, result.stderr
-    assert result.events("safe_stop")[0]["reason"] == f"{signal.Signals(sig).name} received"
-    assert result.ticks[-1]["cmd"] == pytest.approx([0.1, 0.1])
     assert_ends_at_zero(result)
 
 

@@ -85,6 +85,8 @@ class PCA9685Emulator:
         self.absent = False
         self.transactions = 0
         self.bytes = 0
+        self.peak_duty = [0.0] * CHANNELS
+        """Highest effective duty each output has had: proves a pulse that is over by now."""
         self._pointer = 0
         self._state_file = Path(state_file) if state_file is not None else None
         if self._state_file is not None:
@@ -120,6 +122,7 @@ class PCA9685Emulator:
         self.absent = state.get("absent", False)
         self.transactions = state.get("transactions", 0)
         self.bytes = state.get("bytes", 0)
+        self.peak_duty = list(state.get("peak_duty", [0.0] * CHANNELS))
         self._pointer = state.get("pointer", 0)
 
     def _save(self) -> None:
@@ -131,6 +134,7 @@ class PCA9685Emulator:
             "absent": self.absent,
             "transactions": self.transactions,
             "bytes": self.bytes,
+            "peak_duty": self.peak_duty,
             "pointer": self._pointer,
         }
         fd, tmp = tempfile.mkstemp(dir=self._state_file.parent, prefix=".pca9685-")
@@ -240,6 +244,7 @@ class PCA9685Emulator:
         for value in payload[1:]:
             self._store(self._pointer, value)
             self._pointer = self._next(self._pointer)
+        self.peak_duty = [max(p, d) for p, d in zip(self.peak_duty, self.duties(), strict=True)]
 
     def _read(self, length: int) -> list[int]:
         values = []
