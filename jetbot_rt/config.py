@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import stat
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -232,19 +234,61 @@ def from_dict(data: dict[str, Any]) -> Config:
     return config
 
 
+MAX_CONFIG_BYTES = 256 * 1024
+"""A config is a few hundred bytes; anything larger is refused before it is parsed."""
+
+
+def read_config_text(path: Path) -> str:
+    """The text of a config file, read in bounded time and memory, or ``UsageError``.
+
+    Only a regular file is read (a FIFO, a device such as /dev/zero or a directory is
+    refused without blocking: it is opened non-blocking and checked with ``fstat``), at most
+    ``MAX_CONFIG_BYTES``, and it must be UTF-8; a leading byte-order mark is accepted.
+    """
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise UsageError(f"cannot read config {path}: {exc.strerror or exc}") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+            raise UsageError(f"cannot read config {path}: {kind}")
+        data = b""
+        while len(data) <= MAX_CONFIG_BYTES:
+            chunk = os.read(fd, MAX_CONFIG_BYTES + 1 - len(data))
+            if not chunk:
+                break
+            data += chunk
+    except OSError as exc:
+        raise UsageError(f"cannot read config {path}: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if len(data) > MAX_CONFIG_BYTES:
+        raise UsageError(f"config {path} is larger than {MAX_CONFIG_BYTES // 1024} KiB")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise UsageError(
+            f"config {path} is not UTF-8: byte 0x{data[exc.start]:02x} at line {line}"
+        ) from None
+    return text[1:] if text.startswith("\ufeff") else text
+
+
 def load_config(path: str | Path | None) -> Config:
     """Read a TOML file (or return the defaults when ``path`` is None)."""
     if path is None:
         return Config()
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise UsageError(f"cannot read config {path}: {exc.strerror or exc}") from None
+    text = read_config_text(path)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise UsageError(f"config {path} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise UsageError(f"config {path} is not valid TOML: nested too deeply") from None
     try:
         return from_dict(data)
     except UsageError as exc:

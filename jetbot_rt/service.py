@@ -63,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
     unit_text = render_unit(executable, args.user, config)
     unit_path = staged(root, UNIT_DIR / UNIT_NAME)
     config_path = staged(root, config)
+    if config_path.exists() or config_path.is_symlink():
+        from jetbot_rt.config import load_config
+
+        load_config(config_path)  # an existing config is kept: it must be one the service reads
     unit_action = "wrote"
     if unit_path.exists():
         if read_text(unit_path) == unit_text:
