@@ -7,7 +7,7 @@ loop never bursts to catch up, so a slow moment never turns into a rush of stale
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -23,6 +23,57 @@ from jetbot_rt.telemetry import Telemetry
 
 class Policy(Protocol):
     def infer(self, image: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class TickResult:
+    """What one completed tick saw and did, handed to every tick observer.
+
+    ``image`` is the frame exactly as the policy received it (HxWx3 uint8 RGB, before the
+    policy's own colour, dtype and layout conversion). Times are ``time.monotonic()`` seconds;
+    durations are milliseconds.
+    """
+
+    tick: int
+    t_start: float
+    deadline: float
+    image: np.ndarray
+    frame_index: int
+    frame_age_ms: float
+    mu: list[float]
+    cmd: tuple[float, float]
+    infer_ms: float
+    tick_ms: float
+    write_ms: float
+    advance_ms: float | None
+    overruns: int
+    extra: dict[str, Any]
+    """The backend's per-tick fields (the sim's ``pose`` and ``sim_time``)."""
+
+    def record(self, t0: float) -> dict[str, Any]:
+        """The telemetry record of this tick (``t`` relative to ``t0``)."""
+        record: dict[str, Any] = {
+            "t": round(self.t_start - t0, 6),
+            "tick": self.tick,
+            "state": "driving",
+            "mu": self.mu,
+            "cmd": list(self.cmd),
+            "frame_age_ms": round(self.frame_age_ms, 3),
+            "infer_ms": round(self.infer_ms, 3),
+            "tick_ms": round(self.tick_ms, 3),
+            "overruns": self.overruns,
+            "late_ms": round((self.t_start - self.deadline) * 1e3, 3),
+            "write_ms": round(self.write_ms, 3),
+        }
+        if self.advance_ms is not None:
+            record["advance_ms"] = round(self.advance_ms, 3)
+        record.update(self.extra)
+        return record
+
+
+TickObserver = Callable[[TickResult], None]
+"""Called on the control thread after each completed tick: it must return at once (hand work
+to another thread) and never raise."""
 
 
 @dataclass
@@ -61,6 +112,7 @@ class ControlLoop:
         advance: Callable[[float], None] | None = None,
         extra_telemetry: Callable[[], dict[str, Any]] | None = None,
         on_tick_done: Callable[[float], None] | None = None,
+        observers: Sequence[TickObserver] = (),
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.camera = camera
@@ -75,6 +127,7 @@ class ControlLoop:
         self.advance = advance
         self.extra_telemetry = extra_telemetry
         self.on_tick_done = on_tick_done
+        self.observers = list(observers)
         self.clock = clock
         self.stats = LoopStats()
         self.last_mu: list[float] = [0.0, 0.0]
@@ -145,23 +198,25 @@ class ControlLoop:
             self.watchdog.kick()
         if self.on_tick_done is not None:
             self.on_tick_done(t_end)
-        if not self.telemetry.enabled:
+        if not (self.telemetry.enabled or self.observers):
             return
-        record: dict[str, Any] = {
-            "t": round(t_start - self.telemetry.t0, 6),
-            "tick": stats.ticks,
-            "state": "driving",
-            "mu": self.last_mu,
-            "cmd": [left, right],
-            "frame_age_ms": round(frame_age * 1e3, 3),
-            "infer_ms": round(infer_ms, 3),
-            "tick_ms": round(tick_ms, 3),
-            "overruns": stats.overruns,
-            "late_ms": round((t_start - deadline) * 1e3, 3),
-            "write_ms": round((t_written - t_act) * 1e3, 3),
-        }
-        if self.advance is not None:
-            record["advance_ms"] = round((t_end - t_written) * 1e3, 3)
-        if self.extra_telemetry is not None:
-            record.update(self.extra_telemetry())
-        self.telemetry.record(record)
+        result = TickResult(
+            tick=stats.ticks,
+            t_start=t_start,
+            deadline=deadline,
+            image=frame.image,
+            frame_index=frame.index,
+            frame_age_ms=frame_age * 1e3,
+            mu=self.last_mu,
+            cmd=(left, right),
+            infer_ms=infer_ms,
+            tick_ms=tick_ms,
+            write_ms=(t_written - t_act) * 1e3,
+            advance_ms=(t_end - t_written) * 1e3 if self.advance is not None else None,
+            overruns=stats.overruns,
+            extra=self.extra_telemetry() if self.extra_telemetry is not None else {},
+        )
+        for observer in self.observers:
+            observer(result)
+        if self.telemetry.enabled:
+            self.telemetry.record(result.record(self.telemetry.t0))

@@ -1,3 +1,4 @@
+import json
 import time
 
 import numpy as np
@@ -112,3 +113,20 @@ def test_watchdog_stops_a_hung_tick():
     assert latch.fault and latch.reason.startswith("watchdog")
     assert drive.last == (0.0, 0.0)
     assert loop.stats.ticks == 3
+
+
+def test_observers_see_each_tick_as_telemetry_records_it(tmp_path):
+    path = tmp_path / "t.jsonl"
+    telemetry = Telemetry(path)
+    policy = ScriptedPolicy([[0.5, -0.25], [1.0, 0.0]])
+    loop, _, _, _ = make_loop(policy, telemetry=telemetry)
+    seen = []
+    loop.observers.append(seen.append)
+    loop.run(duration=0.2)
+    telemetry.close()
+    records = [json.loads(line) for line in path.read_text().splitlines()]
+    assert len(seen) == loop.stats.ticks == len(records) >= 2
+    for result, record in zip(seen, records, strict=True):
+        assert result.record(telemetry.t0) == record
+        assert result.image.shape == (224, 224, 3) and result.image.dtype == np.uint8
+    assert seen[0].mu == [0.5, -0.25] and seen[0].cmd == (0.05, -0.025)
