@@ -1,0 +1,171 @@
+"""The control loop's schedule in simulated time: exact deadlines, overrun counts, no burst.
+
+The loop runs unchanged on a clock the test owns: the policy's inference advances it by the
+tick's scripted duration, and waiting on the latch advances it by the wait (plus a scripted
+late wake-up). So every tick start is known exactly, whatever the load on the machine.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from jetbot_rt.actions import ActionPipeline
+from jetbot_rt.hal.base import Camera, Frame
+from jetbot_rt.hal.i2c import I2CBus
+from jetbot_rt.hal.motors import WaveshareDrive
+from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.loop import ControlLoop
+from jetbot_rt.safety import GuardedDrive, SafeStopLatch
+from jetbot_rt.telemetry import Telemetry
+
+PERIOD = 0.25  # a power of two: every sum of periods below is exact in binary floating point
+
+
+class SimulatedClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class SimulatedTimeLatch(SafeStopLatch):
+    """Waiting advances the simulated clock instead of sleeping; ``late`` maps a wait's
+    index (1-based: the wait after tick N) to how much later than asked the loop wakes up."""
+
+    def __init__(self, clock: SimulatedClock, late: dict[int, float] | None = None) -> None:
+        super().__init__()
+        self.clock = clock
+        self.late = late or {}
+        self.waits = 0
+
+    def wait(self, timeout: float | None = None) -> bool:
+        self.waits += 1
+        assert timeout is not None and timeout >= 0.0
+        self.clock.now += timeout + self.late.get(self.waits, 0.0)
+        return self.tripped
+
+
+class FreshCamera(Camera):
+    """Always a frame captured at the current simulated time."""
+
+    def __init__(self, clock: SimulatedClock) -> None:
+        self.clock = clock
+        self.index = 0
+        self.image = np.zeros((4, 4, 3), np.uint8)
+
+    def start(self) -> None:
+        pass
+
+    def read(self) -> Frame:
+        self.index += 1
+        return Frame(self.image, self.clock(), self.index)
+
+    def stop(self) -> None:
+        pass
+
+
+class TimedPolicy:
+    """Inference takes ``durations[n]`` of simulated time on its n-th call (default 0)."""
+
+    def __init__(self, clock: SimulatedClock, durations: dict[int, float]) -> None:
+        self.clock = clock
+        self.durations = durations
+        self.calls = 0
+        self.starts: list[float] = []
+
+    def infer(self, image: np.ndarray) -> np.ndarray:
+        self.calls += 1
+        self.starts.append(self.clock())
+        self.clock.now += self.durations.get(self.calls, 0.0)
+        return np.array([0.5, 0.5])
+
+
+def run_loop(durations: dict[int, float], duration: float, late: dict[int, float] | None = None,
+             telemetry: Telemetry | None = None
+             ) -> tuple[ControlLoop, TimedPolicy, SimulatedTimeLatch, PCA9685Emulator]:
+    clock = SimulatedClock()
+    latch = SimulatedTimeLatch(clock, late)
+    chip = PCA9685Emulator(0x60)
+    drive = GuardedDrive(WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0), latch)
+    policy = TimedPolicy(clock, durations)
+    loop = ControlLoop(
+        camera=FreshCamera(clock), policy=policy, actions=ActionPipeline(), drive=drive,
+        latch=latch, watchdog=None, telemetry=telemetry or Telemetry(None), period=PERIOD,
+        max_frame_age=1000.0, clock=clock,
+    )
+    loop.run(duration=duration)
+    return loop, policy, latch, chip
+
+
+def periods(times: list[float]) -> list[float]:
+    return [t / PERIOD for t in times]
+
+
+class TestOverrunShorterThanAPeriod:
+    """A tick that ends less than one period past the next deadline: that deadline is missed
+    (counted), and the next tick runs on its own deadline, not late on the missed one."""
+
+    def test_half_a_period_over_skips_and_counts_one(self) -> None:
+        loop, policy, _, _ = run_loop({3: 1.5 * PERIOD}, duration=8 * PERIOD)
+        assert periods(policy.starts) == [0, 1, 2, 4, 5, 6, 7]
+        assert loop.stats.overruns == 1
+
+    def test_a_sliver_over_still_counts(self) -> None:
+        loop, policy, _, _ = run_loop({2: 1.0625 * PERIOD}, duration=6 * PERIOD)
+        assert periods(policy.starts) == [0, 1, 3, 4, 5]
+        assert loop.stats.overruns == 1
+
+    def test_ending_exactly_on_the_next_deadline_is_on_time(self) -> None:
+        loop, policy, _, _ = run_loop({2: 1.0 * PERIOD}, duration=5 * PERIOD)
+        assert periods(policy.starts) == [0, 1, 2, 3, 4]
+        assert loop.stats.overruns == 0
+
+    @pytest.mark.parametrize(("slow", "starts", "overruns"), [
+        (2.5, [0, 1, 2, 5, 6], 2),
+        (3.5, [0, 1, 2, 6], 3),
+        (3.75, [0, 1, 2, 6], 3),
+    ])
+    def test_longer_overruns_skip_every_missed_deadline(self, slow: float, starts: list[float],
+                                                        overruns: int) -> None:
+        loop, policy, _, _ = run_loop({3: slow * PERIOD}, duration=7 * PERIOD)
+        assert periods(policy.starts) == starts
+        assert loop.stats.overruns == overruns
+
+
+class TestLateWakeUp:
+    """A tick that starts over half a period late does not get a successor a moment later."""
+
+    def test_more_than_half_a_period_late_skips_the_next_deadline(self) -> None:
+        loop, policy, _, _ = run_loop({}, duration=6 * PERIOD, late={2: 0.75 * PERIOD})
+        assert periods(policy.starts) == [0, 1, 2.75, 4, 5]
+        assert loop.stats.overruns == 1
+
+    def test_less_than_half_a_period_late_keeps_the_next_deadline(self) -> None:
+        loop, policy, _, _ = run_loop({}, duration=5 * PERIOD, late={2: 0.25 * PERIOD})
+        assert periods(policy.starts) == [0, 1, 2.25, 3, 4]
+        assert loop.stats.overruns == 0
+
+
+class TestDurationAndRecords:
+    def test_duration_ends_on_its_deadline_without_a_fault(self, tmp_path) -> None:
+        telemetry = Telemetry(tmp_path / "t.jsonl")
+        loop, policy, latch, chip = run_loop({3: 1.5 * PERIOD}, duration=6 * PERIOD,
+                                             telemetry=telemetry)
+        telemetry.close()
+        assert periods(policy.starts) == [0, 1, 2, 4, 5]
+        assert loop.stats.ticks == 5
+        assert latch.tripped and not latch.fault
+        assert latch.reason == "duration 1.5 s reached"
+        assert chip.all_off()
+        assert loop.stats.elapsed == 6 * PERIOD
+        assert loop.stats.achieved_hz == pytest.approx(5 / (6 * PERIOD))
+        records = [json.loads(line) for line in (tmp_path / "t.jsonl").read_text().splitlines()]
+        assert [r["tick"] for r in records] == [1, 2, 3, 4, 5]
+        assert [r["overruns"] for r in records] == [0, 0, 0, 1, 1]
+        assert [r["late_ms"] for r in records] == [0.0] * 5  # each on its own deadline
+        assert [r["infer_ms"] for r in records] == [0.0, 0.0, 375.0, 0.0, 0.0]
+        assert all(r["cmd"] == [0.05, 0.05] and r["mu"] == [0.5, 0.5] for r in records)
