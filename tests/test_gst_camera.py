@@ -31,11 +31,12 @@ def wait_for_index(cam: GstCamera, index: int, timeout: float = 5.0) -> None:
 
 
 def pid_alive(pid: int) -> bool:
+    """True while ``pid`` runs; a zombie (dead, not yet reaped by init) counts as dead."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
         return False
-    return True
 
 
 @pytest.mark.parametrize(
@@ -161,3 +162,40 @@ def test_gst_error_line_prefers_the_error_over_debug_lines() -> None:
              "ERROR: from element /GstPipeline:pipeline0/GstV4l2Src:v4l2src0: Cannot open\n",
              "Additional debug info:\n"]
     assert gst_error_line(lines).startswith("ERROR: from element")
+
+
+QUIET_CHILD = """
+import sys
+from jetbot_rt.config import CameraConfig
+from jetbot_rt.hal.gst_camera import GstCamera
+# one frame a minute: after the first, the child writes nothing a broken pipe could end it on
+source = "gst:videotestsrc is-live=true ! video/x-raw,framerate=1/60"
+cam = GstCamera(CameraConfig(source=source, start_timeout=10.0), (64, 48))
+cam.start()
+print(cam._process.pid, flush=True)
+sys.stdin.read()
+"""
+
+
+class TestAQuietChildDiesWithItsParent:
+    """The child must not rely on a broken pipe to end: a camera that delivers rarely (or a
+    stalled one) would keep gst-launch, and the camera device, after the runtime died."""
+
+    @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV])
+    def test_killed_runtime_takes_a_quiet_child_along(self, sig: int) -> None:
+        runtime = subprocess.Popen(
+            [sys.executable, "-c", QUIET_CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+        )
+        assert runtime.stdout is not None
+        gst_pid = int(runtime.stdout.readline())
+        try:
+            assert pid_alive(gst_pid)
+            runtime.send_signal(sig)
+            runtime.wait()
+            deadline = time.monotonic() + 10.0  # a liveness bound; the next frame is 60 s away
+            while pid_alive(gst_pid) and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert not pid_alive(gst_pid), "gst-launch outlived the runtime"
+        finally:
+            if pid_alive(gst_pid):
+                os.kill(gst_pid, signal.SIGKILL)

@@ -193,3 +193,51 @@ def test_stop_reports_a_runtime_it_could_not_reach(tmp_path) -> None:
     assert result.returncode == 1
     assert "a runtime may still be driving" in result.stderr
     assert chip.refresh().all_off()  # the hardware stop was still written
+
+
+class TestStopNeverReportsAnOffItCouldNotWrite:
+    """Whatever keeps the hardware stop from reaching the board -- no device node, a board that
+    does not answer, a bus that fails every transfer, a bad config on top -- ``stop`` exits
+    non-zero, says NOT confirmed in one line and never prints "motor outputs off"."""
+
+    @staticmethod
+    def stop_without_emulator(tmp_path: Path, config: str) -> subprocess.CompletedProcess[str]:
+        path = tmp_path / "robot.toml"
+        path.write_text(config)
+        env = {k: v for k, v in os.environ.items() if k != EMULATOR_ENV}
+        env["JETBOT_RT_RUNTIME_DIR"] = str(tmp_path / "run")
+        return subprocess.run(
+            [sys.executable, "-m", "jetbot_rt.cli", "stop", "--config", str(path)],
+            capture_output=True, text=True, timeout=30, env=env,
+        )
+
+    @pytest.mark.parametrize("bus", [7, 255])
+    def test_a_bus_that_cannot_be_opened(self, tmp_path: Path, bus: int) -> None:
+        assert not Path(f"/dev/i2c-{bus}").exists()
+        result = self.stop_without_emulator(tmp_path, f"[motors]\ni2c_bus = {bus}\n")
+        assert result.returncode == 1, result.stdout + result.stderr
+        assert "motor outputs off" not in result.stdout
+        [line] = result.stderr.strip().splitlines()
+        assert line.startswith(f"jetbot-rt stop: motors NOT confirmed off (I2C bus {bus} ")
+        assert f"/dev/i2c-{bus}" in line
+
+    def test_a_bad_config_and_no_bus_is_still_not_confirmed(self, tmp_path: Path) -> None:
+        assert not Path("/dev/i2c-1").exists()
+        result = self.stop_without_emulator(tmp_path, "[motors]\nlayout = 'nope'\n")
+        assert result.returncode == 1, result.stdout + result.stderr
+        assert "motor outputs off" not in result.stdout
+        assert "using the default bus and address" in result.stderr
+        assert "motors NOT confirmed off (I2C bus 1 address 0x60)" in result.stderr
+        assert "Traceback" not in result.stderr
+
+    def test_a_bus_that_fails_every_transfer(self, tmp_path: Path) -> None:
+        chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+        WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0).write(0.6, 0.6)
+        chip.update(fail_next=100)
+        config = tmp_path / "robot.toml"
+        config.write_text("[motors]\ni2c_retries = 2\n")
+        result = stop_command(tmp_path, "--config", str(config))
+        assert result.returncode == 1, result.stdout + result.stderr
+        assert "motor outputs off" not in result.stdout
+        assert "motors NOT confirmed off" in result.stderr
+        assert not chip.refresh().all_off()  # true: it could not be written
