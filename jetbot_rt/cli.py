@@ -19,6 +19,10 @@ COMMANDS = {
     "stop": ("jetbot_rt.stop", "stop a running jetbot-rt and turn the motor outputs off"),
     "check": ("jetbot_rt.check", "self-test: motor board, camera, policy, providers"),
     "install-service": ("jetbot_rt.service", "install the systemd unit and a default config"),
+    "replay": ("jetbot_rt.replay", "run a policy offline over a recording's frames and compare "
+               "its mu with the recorded one (no motor is touched)"),
+    "report": ("jetbot_rt.report", "look at a recording or a telemetry file: run.mp4, run.png "
+               "and the summary"),
 }
 
 

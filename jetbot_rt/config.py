@@ -148,6 +148,17 @@ class TelemetryConfig:
 
 
 @dataclass
+class RecordConfig:
+    path: str | None = None
+    """Directory to record every tick's frame and record into (docs/RECORDING.md); none by
+    default. It must not exist or be empty; ``{time}`` becomes the start time (UTC), so that
+    each run of the service records into a directory of its own."""
+    queue_frames: int = field(default=64, metadata=_check(lambda v: 1 <= v <= 10000, "1..10000"))
+    """Frames that may wait for the disk; beyond that a tick's frame is dropped and counted
+    (the tick itself never waits)."""
+
+
+@dataclass
 class SimConfig:
     physics_hz: float = field(default=240.0, metadata=_positive())
     """Physics sub-step rate; each control tick advances the world by one period."""
@@ -173,6 +184,7 @@ class Config:
     motors: MotorsConfig = field(default_factory=MotorsConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
     sim: SimConfig = field(default_factory=SimConfig)
 
 

@@ -201,13 +201,20 @@ class OnnxPolicy:
                              f"{chosen.name}, found shape {chosen.shape}")
         return chosen.name
 
+    def fit(self, image: np.ndarray) -> np.ndarray:
+        """The frame at the model's input size (unchanged if it is already): what a recording
+        keeps, before colour order, dtype and layout are applied."""
+        spec = self.spec
+        if image.shape[0] != spec.height or image.shape[1] != spec.width:
+            image = cv2.resize(image, (spec.width, spec.height), interpolation=cv2.INTER_AREA)
+        return image
+
     def prepare(self, image: np.ndarray) -> np.ndarray:
         """HxWx3 uint8 RGB -> the batch of one the model takes."""
         spec = self.spec
         if image.ndim != 3 or image.shape[2] != 3:
             raise Fault(f"camera frame has shape {image.shape}, expected HxWx3")
-        if image.shape[0] != spec.height or image.shape[1] != spec.width:
-            image = cv2.resize(image, (spec.width, spec.height), interpolation=cv2.INTER_AREA)
+        image = self.fit(image)
         if spec.color_order == "BGR":
             image = image[:, :, ::-1]
         if spec.dtype == np.uint8:

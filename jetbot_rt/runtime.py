@@ -25,6 +25,8 @@ from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE, Fault, UsageEr
 from jetbot_rt.hal import BackendOptions, make_backend
 from jetbot_rt.loop import ControlLoop
 from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
+from jetbot_rt.recorder import Recorder, recording_line
+from jetbot_rt.recorder import open_for_run as open_recorder
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
 from jetbot_rt.telemetry import Telemetry
 
@@ -39,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-speed", type=float, help="duty at |mu| = 1, in (0, 1]")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--telemetry", help="write JSON Lines telemetry to this file")
+    parser.add_argument("--record", metavar="DIR",
+                        help="record every tick's frame and record into this new directory "
+                             "(docs/RECORDING.md; look at it with jetbot-rt report DIR)")
     parser.add_argument("--gui", action="store_true", help="open PyBullet's window (sim only)")
 
 
@@ -49,6 +54,7 @@ def build_config(args: argparse.Namespace) -> Config:
         ("actions", "max_speed", args.max_speed, "--max-speed"),
         ("telemetry", "path", args.telemetry, "--telemetry"),
         ("policy", "path", args.policy, "--policy"),
+        ("record", "path", getattr(args, "record", None), "--record"),
     ]
     for section, key, value, flag in overrides:
         if value is None:
@@ -83,6 +89,7 @@ class Runtime:
         self.control: Any = None
         self.notifier: Any = None
         self.stuck_thread: threading.Thread | None = None
+        self.recorder: Recorder | None = None
 
     def _log_trip(self, reason: str) -> None:
         self.telemetry.event("safe_stop", reason=reason, fault=self.latch.fault, cmd=[0.0, 0.0])
@@ -109,7 +116,15 @@ class Runtime:
         self.drive = GuardedDrive(self.backend.drive, self.latch)
         # registered after the drive's own zeroing callback: the event is logged once it is done
         self.latch.on_trip(self._log_trip)
+        self.recorder = open_recorder(self.config, self.args.backend, policy,
+                                      self.actions.max_speed, self.telemetry.t0)
+        if self.recorder is not None:
+            self.latch.on_trip(self._record_trip)
         return policy
+
+    def _record_trip(self, reason: str) -> None:
+        assert self.recorder is not None
+        self.recorder.event("safe_stop", reason=reason, fault=self.latch.fault, cmd=[0.0, 0.0])
 
     def warm_up(self, policy: OnnxPolicy) -> None:
         """Start the camera, run the policy on a real frame, refuse a policy that is too slow."""
@@ -219,6 +234,7 @@ class Runtime:
             advance=self.backend.advance,
             extra_telemetry=self.backend.telemetry,
             on_tick_done=lambda now: self.notifier.tick(now, self._status),
+            observers=[self.recorder.observe] if self.recorder is not None else [],
         )
         self.telemetry.event(
             "start", backend=self.args.backend, policy=policy.describe(),
@@ -288,6 +304,8 @@ class Runtime:
             summary["stop_errors"] = self.drive.stop_errors
         if self.telemetry.lost:
             summary["telemetry_lost"] = self.telemetry.lost
+        if self.recorder is not None:
+            summary["recording"] = self.recorder.close(dict(summary))
         if self.notifier is not None:
             self.notifier.stopping(f"stopping: {reason}")
         self.telemetry.event("end", **summary)
@@ -310,6 +328,8 @@ def print_summary(summary: dict[str, Any], rate_hz: float) -> None:
         lines.append(f"  i2c retried  {summary['i2c_retried']} transfers")
     if summary.get("telemetry_lost"):
         lines.append(f"  telemetry    {summary['telemetry_lost']} records lost")
+    if "recording" in summary:
+        lines.append(f"  recording    {recording_line(summary['recording'])}")
     for error in summary.get("stop_errors", []):
         lines.append(f"  stop error   {error}")
     lines.append(f"  stopped      {summary['reason']}")
@@ -329,6 +349,8 @@ def run(args: argparse.Namespace) -> int:
         return runtime._finish().exit_code
     except UsageError as exc:
         runtime.telemetry.event("end", reason=str(exc), exit_code=2, cmd=[0.0, 0.0])
+        if runtime.recorder is not None:
+            runtime.recorder.close({"reason": str(exc), "exit_code": 2, "cmd": [0.0, 0.0]})
         runtime.telemetry.close()
         if runtime.stuck_thread is not None:
             # A warm-up stuck in native code makes the interpreter's shutdown abort (SIGABRT,

@@ -1,0 +1,264 @@
+"""``jetbot-rt report DIR``: look at a run. Writes ``run.mp4`` (the frames at their real pace
+with mu, duties and the tick's state drawn on them, a marker at a safe stop) and ``run.png``
+(mu, duties, tick time, frame age, overruns and events on one time axis) beside the recording,
+and prints the summary. On a bare telemetry JSONL file it writes ``<name>.png`` only.
+
+matplotlib is imported only here, and only for the plot; the robot may not have it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from jetbot_rt.errors import EXIT_OK, UsageError
+from jetbot_rt.recording import Recording
+
+SCALE = 2  # the 224x224 frames are shown at 448x448
+PANEL = 120  # px of text and bars under the frame
+STOP_HOLD_S = 1.5  # the last frame with the stop marker stays this long at the end
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", metavar="DIR",
+                        help="a directory written by run --record, or a --telemetry JSONL file")
+    parser.add_argument("--out", metavar="DIR",
+                        help="where to write run.mp4 / run.png (default: beside the input)")
+    parser.add_argument("--no-video", action="store_true", help="write the plot only")
+
+
+# ---- summary -------------------------------------------------------------------------------
+
+
+def _percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def summarize(recording: Recording) -> dict[str, Any]:
+    ticks = recording.ticks
+    times = [r["t"] for r in ticks]
+    duration = times[-1] - times[0] if len(times) > 1 else 0.0
+    stops = [e for e in recording.events if e["event"] == "safe_stop"]
+    ends = [e for e in recording.events if e["event"] == "end"]
+    summary: dict[str, Any] = {
+        "ticks": len(ticks),
+        "duration_s": round(duration, 3),
+        "rate_hz": round((len(ticks) - 1) / duration, 2) if duration > 0 else 0.0,
+        "tick_ms_p50": round(_percentile([r["tick_ms"] for r in ticks], 50), 3),
+        "tick_ms_p99": round(_percentile([r["tick_ms"] for r in ticks], 99), 3),
+        "frame_age_ms_p99": round(_percentile([r["frame_age_ms"] for r in ticks], 99), 3),
+        "overruns": ticks[-1]["overruns"] if ticks else 0,
+        "frames_missing": sum(1 for r in ticks if r.get("frame", 0) is None),
+        "stopped": stops[0]["reason"] if stops else (ends[0].get("reason") if ends else None),
+        "fault": bool(stops[0].get("fault")) if stops else None,
+    }
+    if recording.summary:
+        summary["frames_dropped"] = recording.summary.get("frames_dropped", 0)
+        if recording.summary.get("error"):
+            summary["recording_error"] = recording.summary["error"]
+    return summary
+
+
+def print_summary(recording: Recording, summary: dict[str, Any]) -> None:
+    meta = recording.meta
+    lines = [f"jetbot-rt report: {recording.path}"]
+    if meta:
+        lines.append(f"  backend      {meta.get('backend')}, policy "
+                     f"{meta.get('policy', {}).get('path')}")
+    lines += [
+        f"  ticks        {summary['ticks']} in {summary['duration_s']:.2f} s "
+        f"({summary['rate_hz']:.2f} Hz)",
+        f"  tick time    p50 {summary['tick_ms_p50']:.2f} ms, p99 {summary['tick_ms_p99']:.2f} ms",
+        f"  frame age    p99 {summary['frame_age_ms_p99']:.1f} ms",
+        f"  overruns     {summary['overruns']}",
+    ]
+    if meta:
+        lines.append(f"  frames       {summary['frames_missing']} ticks without a frame")
+    if summary.get("recording_error"):
+        lines.append(f"  recording    stopped: {summary['recording_error']}")
+    if summary["stopped"]:
+        kind = "fault" if summary["fault"] else "orderly"
+        lines.append(f"  stopped      {summary['stopped']} ({kind})")
+    print("\n".join(lines), flush=True)
+
+
+# ---- plot ----------------------------------------------------------------------------------
+
+
+def plot(recording: Recording, out: Path) -> bool:
+    """run.png; False (and one line on stderr) when matplotlib is not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("jetbot-rt report: the plot needs matplotlib: pip install 'jetbot_rt[train]'",
+              file=sys.stderr)
+        return False
+    ticks = recording.ticks
+    t = np.array([r["t"] for r in ticks])
+    column = {key: np.array([r[key] for r in ticks], dtype=float)
+              for key in ("tick_ms", "infer_ms", "frame_age_ms", "overruns")}
+    mu = np.array([r["mu"] for r in ticks], dtype=float).reshape(-1, 2)
+    cmd = np.array([r["cmd"] for r in ticks], dtype=float).reshape(-1, 2)
+    fig, axes = plt.subplots(5, 1, figsize=(12, 10), sharex=True,
+                             gridspec_kw={"height_ratios": [2, 2, 2, 1.5, 1]})
+    rows = [
+        (axes[0], [(mu[:, 0], "mu left"), (mu[:, 1], "mu right")], "mu"),
+        (axes[1], [(cmd[:, 0], "duty left"), (cmd[:, 1], "duty right")], "duty"),
+        (axes[2], [(column["tick_ms"], "tick"), (column["infer_ms"], "inference")], "ms"),
+        (axes[3], [(column["frame_age_ms"], "frame age")], "frame age ms"),
+        (axes[4], [(column["overruns"], "overruns (total)")], "overruns"),
+    ]
+    for axis, series, label in rows:
+        for values, name in series:
+            axis.step(t, values, where="post", label=name, linewidth=1)
+        axis.set_ylabel(label)
+        axis.grid(alpha=0.3)
+        axis.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8)
+    if recording.meta.get("rate_hz"):
+        axes[2].axhline(1e3 / float(recording.meta["rate_hz"]), color="black", linewidth=0.8,
+                        linestyle=":", label="period")
+        axes[2].legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8)
+    missing = [r["t"] for r in ticks if "frame" in r and r["frame"] is None]
+    if missing:
+        axes[3].plot(missing, [0] * len(missing), "|", color="tab:red", label="frame dropped")
+        axes[3].legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8)
+    for event in recording.events:
+        if event["event"] in ("start", "end"):
+            continue
+        color = "tab:red" if event.get("fault", True) else "tab:gray"
+        for axis in axes:
+            axis.axvline(event["t"], color=color, linestyle="--", linewidth=1)
+        axes[0].annotate(f"{event['event']}: {event.get('reason', '')}"[:70],
+                         (event["t"], 1.0), xycoords=("data", "axes fraction"),
+                         xytext=(-4, -4), textcoords="offset points", ha="right", va="top",
+                         fontsize=8, color=color,
+                         bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
+    axes[-1].set_xlabel("t (s)")
+    title = str(recording.path)
+    if recording.meta:
+        title += (f"  |  {recording.meta.get('backend')}, "
+                  f"{Path(recording.meta.get('policy', {}).get('path', '?')).name}")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return True
+
+
+# ---- video ---------------------------------------------------------------------------------
+
+
+def _bar(canvas: np.ndarray, x: int, y: int, value: float, label: str) -> None:
+    """A horizontal bar for ``value`` in [-1, 1] around a centre line."""
+    width = 150
+    cv2.putText(canvas, label, (x, y + 11), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (220, 220, 220), 1)
+    left = x + 50
+    cv2.rectangle(canvas, (left, y), (left + width, y + 12), (80, 80, 80), 1)
+    centre = left + width // 2
+    end = centre + int(max(-1.0, min(1.0, value)) * width / 2)
+    color = (80, 200, 80) if value >= 0 else (80, 80, 230)
+    cv2.rectangle(canvas, (min(centre, end), y + 2), (max(centre, end), y + 10), color, -1)
+    cv2.putText(canvas, f"{value:+.3f}", (left + width + 6, y + 11), cv2.FONT_HERSHEY_SIMPLEX,
+                0.4, (220, 220, 220), 1)
+
+
+def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
+            stop: dict[str, Any] | None) -> np.ndarray:
+    """One video frame (BGR): the frame enlarged, and a panel with the tick's numbers."""
+    height, width = image.shape[0] * SCALE, image.shape[1] * SCALE
+    canvas = np.zeros((height + PANEL, width, 3), np.uint8)
+    canvas[:height] = cv2.resize(image[:, :, ::-1], (width, height),
+                                 interpolation=cv2.INTER_NEAREST)
+    white = (230, 230, 230)
+    text = (f"t {record['t']:7.2f} s  tick {record['tick']}  "
+            f"{'SAFE STOP' if stop else record.get('state', '')}")
+    cv2.putText(canvas, text, (6, height + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, white, 1)
+    mu, cmd = record["mu"], record["cmd"]
+    _bar(canvas, 6, height + 26, mu[0], "mu L")
+    _bar(canvas, 6, height + 44, mu[1], "mu R")
+    _bar(canvas, 6, height + 66, cmd[0] / max_speed, "duty L")
+    _bar(canvas, 6, height + 84, cmd[1] / max_speed, "duty R")
+    timing = (f"tick {record['tick_ms']:.1f} ms  infer {record['infer_ms']:.1f} ms  "
+              f"age {record['frame_age_ms']:.0f} ms  overruns {record['overruns']}")
+    cv2.putText(canvas, timing, (6, height + PANEL - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, white, 1)
+    if record.get("frame", 0) is None:
+        cv2.putText(canvas, "frame dropped: previous shown", (6, 20),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 200, 255), 1)
+    if stop:
+        cv2.rectangle(canvas, (0, 0), (width - 1, height - 1), (0, 0, 255), 6)
+        cv2.putText(canvas, "SAFE STOP", (12, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 255), 2)
+        cv2.putText(canvas, str(stop.get("reason", ""))[:48], (12, 64),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 255), 1)
+    return canvas
+
+
+def video(recording: Recording, out: Path) -> int:
+    """run.mp4 at the recording's rate; a video frame shows the newest tick at its time, so
+    overruns and pauses last as long as they did. Returns the number of video frames."""
+    meta = recording.meta
+    fps = float(meta.get("rate_hz") or 30.0)
+    max_speed = float(meta.get("max_speed") or 0.1)
+    stops = [e for e in recording.events if e["event"] == "safe_stop"]
+    stop = stops[0] if stops else None
+    writer: Any = None
+    written = 0
+    slot_t: float | None = None
+    last: tuple[np.ndarray, dict[str, Any]] | None = None
+
+    def emit(image: np.ndarray, record: dict[str, Any], until: float, marked: bool) -> None:
+        nonlocal writer, written, slot_t
+        frame = compose(image, record, max_speed, stop if marked else None)
+        if writer is None:
+            writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                                     (frame.shape[1], frame.shape[0]))
+            if not writer.isOpened():
+                raise UsageError(f"cannot write {out}")
+        while slot_t is not None and slot_t < until:
+            writer.write(frame)
+            written += 1
+            slot_t += 1.0 / fps
+
+    for record, image in recording.ticks_with_frames():
+        if image is None and last is not None:
+            image = last[0]
+        if image is None:
+            continue
+        if slot_t is None:
+            slot_t = record["t"]
+        if last is not None:
+            emit(last[0], last[1], record["t"], False)
+        last = (image, record)
+    if last is not None and slot_t is not None:
+        emit(last[0], last[1], last[1]["t"] + 1.0 / fps, False)
+        if stop is not None:
+            emit(last[0], last[1], slot_t + STOP_HOLD_S, True)
+    if writer is not None:
+        writer.release()
+    return written
+
+
+def run(args: argparse.Namespace) -> int:
+    recording = Recording.open(args.recording)
+    if not recording.ticks:
+        raise UsageError(f"{args.recording}: no tick records in it")
+    is_dir = bool(recording.meta)
+    out_dir = Path(args.out) if args.out else (recording.path if is_dir else recording.path.parent)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    png = out_dir / ("run.png" if is_dir else recording.path.stem + ".png")
+    summary = summarize(recording)
+    print_summary(recording, summary)
+    if plot(recording, png):
+        print(f"wrote {png}")
+    if is_dir and not args.no_video:
+        mp4 = out_dir / "run.mp4"
+        count = video(recording, mp4)
+        print(f"wrote {mp4} ({count} frames, {count / float(recording.meta['rate_hz']):.1f} s)")
+    return EXIT_OK
