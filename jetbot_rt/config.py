@@ -156,6 +156,9 @@ class RecordConfig:
     queue_frames: int = field(default=64, metadata=_check(lambda v: 1 <= v <= 10000, "1..10000"))
     """Frames that may wait for the disk; beyond that a tick's frame is dropped and counted
     (the tick itself never waits)."""
+    min_free_mb: float = field(default=64.0, metadata=_check(lambda v: v >= 0, "a number >= 0"))
+    """The recording stops (the robot drives on) when the disk has less free space than this,
+    so that a full SD card never starves the system's own logs."""
 
 
 @dataclass

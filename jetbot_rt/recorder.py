@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import hashlib
 import json
 import os
@@ -95,12 +96,15 @@ class Recorder:
     def __init__(self, path: str | Path, meta: dict[str, Any], frame_size: tuple[int, int],
                  rate_hz: float, *, queue_frames: int = 64,
                  fit: Callable[[np.ndarray], np.ndarray] | None = None,
-                 blocking: bool = False, t0: float | None = None) -> None:
+                 blocking: bool = False, t0: float | None = None,
+                 min_free_mb: float = 64.0) -> None:
         self.path = Path(path)
         prepare_directory(self.path)
         self.frame_size = frame_size
         self.fit = fit
         self.blocking = blocking
+        self.min_free = min_free_mb * 1e6
+        self._next_space_check = 0.0
         self.t0 = time.monotonic() if t0 is None else t0
         self.frames_written = 0
         self.frames_dropped = 0
@@ -185,6 +189,7 @@ class Recorder:
     def _write(self, item: Any) -> None:
         if os.fstat(self._ticks.fileno()).st_nlink == 0:
             raise FileNotFoundError("directory removed while recording")
+        self._check_space()
         if isinstance(item, dict):
             self._ticks.write(_dump(item))
             return
@@ -199,6 +204,18 @@ class Recorder:
             self.frames_written += 1
         self._ticks.write(_dump(record))
         self.records_written += 1
+
+    def _check_space(self) -> None:
+        """Once a second: the video writer cannot report a full disk, so look before it is."""
+        now = time.monotonic()
+        if now < self._next_space_check:
+            return
+        self._next_space_check = now + 1.0
+        disk = os.statvfs(self.path)
+        free = disk.f_bavail * disk.f_frsize
+        if free < self.min_free:
+            raise OSError(errno.ENOSPC, f"disk nearly full: {free / 1e6:.0f} MB free, "
+                          f"[record] min_free_mb is {self.min_free / 1e6:g}")
 
     def _fail(self, exc: BaseException) -> None:
         self.error = str(getattr(exc, "strerror", None) or exc)
@@ -266,7 +283,7 @@ def open_for_run(config: Any, backend: str, policy: Any, max_speed: float,
     }
     return Recorder(expand_path(config.record.path), meta, (spec.width, spec.height),
                     config.loop.rate_hz, queue_frames=config.record.queue_frames,
-                    fit=policy.fit, t0=t0)
+                    fit=policy.fit, t0=t0, min_free_mb=config.record.min_free_mb)
 
 
 def recording_line(counts: dict[str, Any]) -> str:

@@ -111,13 +111,13 @@ class Runtime:
             trim=(self.config.actions.trim[0], self.config.actions.trim[1]),
             sign=(self.config.actions.sign[0], self.config.actions.sign[1]),
         )
+        self.recorder = open_recorder(self.config, self.args.backend, policy,
+                                      self.actions.max_speed, self.telemetry.t0)
         options = BackendOptions(frame_size=(spec.width, spec.height), gui=self.args.gui)
         self.backend = make_backend(self.args.backend, self.config, options)
         self.drive = GuardedDrive(self.backend.drive, self.latch)
         # registered after the drive's own zeroing callback: the event is logged once it is done
         self.latch.on_trip(self._log_trip)
-        self.recorder = open_recorder(self.config, self.args.backend, policy,
-                                      self.actions.max_speed, self.telemetry.t0)
         if self.recorder is not None:
             self.latch.on_trip(self._record_trip)
         return policy

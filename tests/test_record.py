@@ -1,0 +1,242 @@
+"""Record, replay, report on real recordings: ``jetbot-rt`` in a subprocess, on the sim and on
+the real backend (emulated PCA9685, videotestsrc camera), the bundled policy."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import policy_models
+import pytest
+from runner import JETBOT_RT, RuntimeProcess, run_cli, wait_for
+
+from jetbot_rt.loop import TickResult
+from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.recorder import Recorder, sha256_of
+from jetbot_rt.recording import Recording
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "RECORDING.md"
+
+
+def replay(*args: str) -> dict:
+    proc = subprocess.run([JETBOT_RT, "replay", *args, "--json"], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    """A sim run that ends in a safe stop: the camera stalls after 1 s of simulated time."""
+    root = tmp_path_factory.mktemp("simrec")
+    (root / "c.toml").write_text("[sim]\ncamera_stall_after = 1.0\n")
+    result = run_cli(["run", "--backend", "sim", "--duration", "10", "--config",
+                      str(root / "c.toml"), "--record", str(root / "rec")],
+                     telemetry=root / "t.jsonl", timeout=120)
+    return root / "rec", result
+
+
+def test_sim_recording_holds_every_tick_and_replays_at_round_off(sim_run):
+    rec, result = sim_run
+    assert result.returncode == 3, result.stderr  # the stale frame's safe stop
+    recording = Recording.open(rec)
+    ticks = recording.ticks
+    assert [r["mu"] for r in ticks] == [r["mu"] for r in result.ticks]
+    assert [r["frame"] for r in ticks] == list(range(len(ticks)))  # nothing dropped
+    assert recording.summary["frames_written"] == len(ticks) > 10
+    assert recording.meta["policy"]["sha256"] == sha256_of(bundled_policy_path())
+    assert recording.meta["config"]["sim"]["camera_stall_after"] == 1.0
+    assert [e["event"] for e in recording.events] == ["safe_stop", "end"]
+    assert "stale frame" in recording.events[0]["reason"] or "watchdog" in \
+        recording.events[0]["reason"]
+    assert re.search(rf"recording +{re.escape(str(rec))}: {len(ticks)} frames, 0 dropped",
+                     result.stdout)
+    summary = replay(str(rec))
+    assert summary["ticks_replayed"] == len(ticks)
+    assert summary["mu_max_abs_diff"] <= 1e-6 and summary["same_policy"]
+    # the frames are what the camera saw: the robot drove, the view changed
+    images = [image for _, image in recording.ticks_with_frames()]
+    assert all(image.shape == (224, 224, 3) for image in images)
+    assert np.abs(images[0].astype(int) - images[-1]).mean() > 1.0
+
+
+def test_plain_reader_in_the_docs_reads_a_recording(sim_run):
+    rec, _ = sim_run
+    code = re.search(r"```python\n(.*?)```", DOCS.read_text(), re.S).group(1)
+    lines = code.strip().splitlines()
+    assert len(lines) <= 20
+    script = code + ("\nimport sys\nrows = list(read_recording(sys.argv[1]))\n"
+                     "print(len(rows), sum(i is not None for _, i in rows), "
+                     "rows[0][1].mean(), rows[0][0]['mu'])\n")
+    proc = subprocess.run([sys.executable, "-I", "-c", script, str(rec)], capture_output=True,
+                          text=True, timeout=60)  # -I: jetbot_rt cannot be imported from cwd
+    assert proc.returncode == 0, proc.stderr
+    count, with_frames, mean, mu = proc.stdout.split(maxsplit=3)
+    recording = Recording.open(rec)
+    first = next(recording.frames())
+    assert int(count) == int(with_frames) == len(recording.ticks)
+    assert float(mean) == pytest.approx(first.mean())
+    assert json.loads(mu) == recording.ticks[0]["mu"]
+
+
+def test_replay_with_another_policy_reports_where_it_differs(sim_run, tmp_path):
+    rec, _ = sim_run
+    other = policy_models.constant(tmp_path / "still.onnx", (0.0, 0.0))
+    summary = replay(str(rec), "--policy", str(other))
+    recorded = np.array([r["mu"] for r in Recording.open(rec).ticks])
+    assert summary["mu_max_abs_diff"] == pytest.approx(np.abs(recorded).max(), abs=1e-6)
+    assert summary["first_tick_over_threshold"] == 1 and not summary["same_policy"]
+
+
+def test_replay_imports_no_motor_or_camera_code(sim_run):
+    rec, _ = sim_run
+    script = ("import sys\nfrom jetbot_rt.cli import main\n"
+              f"code = main(['replay', {str(rec)!r}, '--json'])\n"
+              "print(sorted(m for m in sys.modules if m.split('.')[-1] in "
+              "('i2c', 'motors', 'gst_camera', 'real', 'sim', 'smbus2', 'pybullet')))\n"
+              "sys.exit(code)")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "[]"
+
+
+def test_report_writes_a_video_at_real_pace_and_a_plot(sim_run, tmp_path):
+    rec, _ = sim_run
+    proc = subprocess.run([JETBOT_RT, "report", str(rec)], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "stopped" in proc.stdout and "(fault)" in proc.stdout
+    ticks = Recording.open(rec).ticks
+    video = cv2.VideoCapture(str(rec / "run.mp4"))
+    count = int(video.get(cv2.CAP_PROP_FRAME_COUNT))
+    span = ticks[-1]["t"] - ticks[0]["t"]
+    assert abs(count - round((span + 1.5) * 30)) <= 3  # real pace, then the stop held 1.5 s
+    video.set(cv2.CAP_PROP_POS_FRAMES, count - 1)
+    ok, last = video.read()
+    assert ok and last[2, 200, 2] > 200 and last[2, 200, :2].max() < 60  # the red stop frame
+    assert (rec / "run.png").stat().st_size > 10_000
+    # a bare telemetry file: the plot only
+    telemetry = tmp_path / "t.jsonl"
+    shutil.copy(rec.parent / "t.jsonl", telemetry)
+    proc = subprocess.run([JETBOT_RT, "report", str(telemetry)], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "t.png").is_file() and not (tmp_path / "run.mp4").exists()
+
+
+def test_real_backend_recording_replays_at_round_off(tmp_path):
+    runtime = RuntimeProcess(
+        tmp_path, "real", bundled_policy_path(), duration=1.5,
+        config='[camera]\nsource = "gst:videotestsrc is-live=true pattern=ball"\n'
+               "start_timeout = 5\n")
+    runtime.args += ["--record", str(tmp_path / "rec")]
+    result = runtime.start().finish(timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert runtime.board_off()
+    recording = Recording.open(tmp_path / "rec")
+    assert recording.meta["backend"] == "real"
+    assert len(recording.ticks) == len(result.ticks) > 10
+    mus = np.array([r["mu"] for r in recording.ticks])
+    assert mus.std(axis=0).min() > 1e-4  # the moving ball moves mu: the frames matter
+    summary = replay(str(tmp_path / "rec"))
+    assert summary["ticks_replayed"] == len(recording.ticks) - summary["ticks_without_frame"]
+    assert summary["ticks_replayed"] > 10 and summary["mu_max_abs_diff"] <= 1e-6
+
+
+def test_existing_recording_is_refused_before_any_motor_moves(sim_run, tmp_path):
+    rec, _ = sim_run
+    before = sorted(p.name for p in rec.iterdir())
+    result = run_cli(["run", "--backend", "sim", "--duration", "1", "--record", str(rec)],
+                     telemetry=tmp_path / "t.jsonl")
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "not empty" in result.stderr
+    assert not result.ticks and sorted(p.name for p in rec.iterdir()) == before
+
+
+def test_disk_nearly_full_stops_the_recording_not_the_robot(tmp_path):
+    (tmp_path / "c.toml").write_text("[record]\nmin_free_mb = 1e12\n")  # more than any disk
+    result = run_cli(["run", "--backend", "sim", "--duration", "1", "--config",
+                      str(tmp_path / "c.toml"), "--record", str(tmp_path / "rec")],
+                     telemetry=tmp_path / "t.jsonl")
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stderr.splitlines() if "recording" in line]
+    assert len(lines) == 1 and "disk nearly full" in lines[0] and "still driving" in lines[0]
+    assert len(result.ticks) > 5
+    assert f"{len(result.ticks)} ticks not recorded" in result.stdout
+    summary = json.loads((tmp_path / "rec" / "summary.json").read_text())
+    assert summary["records_lost"] == len(result.ticks) and "disk" in summary["error"]
+
+
+def test_directory_removed_while_recording_the_robot_drives_on(tmp_path):
+    runtime = RuntimeProcess(tmp_path, "sim", bundled_policy_path(), duration=4.0)
+    runtime.args += ["--record", str(tmp_path / "rec")]
+    runtime.start()
+    runtime.wait_ticks(10)
+    shutil.rmtree(tmp_path / "rec")
+    removed_at = runtime.tick_count()
+    result = runtime.finish(timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert len(result.ticks) > removed_at + 10  # it kept driving to the end of its duration
+    lines = [line for line in result.stderr.splitlines() if "recording" in line]
+    assert len(lines) == 1 and "removed" in lines[0], result.stderr
+    assert re.search(r"recording .*stopped \(directory removed", result.stdout)
+
+
+def _tick(tick: int, image: np.ndarray) -> TickResult:
+    return TickResult(tick=tick, t_start=tick / 30, deadline=tick / 30, image=image,
+                      frame_index=tick, frame_age_ms=1.0, mu=[0.5, -0.5], cmd=(0.05, -0.05),
+                      infer_ms=1.0, tick_ms=2.0, write_ms=0.1, advance_ms=None, overruns=0,
+                      extra={})
+
+
+def test_a_full_queue_drops_frames_never_ticks(tmp_path):
+    """Ticks handed over much faster than noise frames encode: frames are dropped and counted;
+    every tick has its record, and every frame written is found at the index its record names."""
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (224, 224, 3), dtype=np.uint8) for _ in range(8)]
+    recorder = Recorder(tmp_path / "rec", {"source": "test"}, (224, 224), 30.0,
+                        queue_frames=2, t0=0.0)
+    for tick in range(1, 201):
+        recorder.observe(_tick(tick, images[tick % 8]))
+    counts = recorder.close({"reason": "test"})
+    assert counts["frames_dropped"] > 0
+    assert counts["frames_written"] + counts["frames_dropped"] == 200
+    assert counts["records_written"] == 200 and counts["records_lost"] == 0
+    for record, image in Recording.open(tmp_path / "rec").ticks_with_frames():
+        if record["frame"] is None:
+            assert image is None
+        else:
+            assert np.array_equal(image, images[record["tick"] % 8])
+
+
+def test_close_is_bounded_when_the_disk_hangs(tmp_path):
+    """A writer stuck in a write (a FIFO nobody reads stands in for a dead disk) does not hold
+    up close() beyond its timeout."""
+    import os
+    import threading
+
+    recorder = Recorder(tmp_path / "rec", {"source": "test"}, (224, 224), 30.0, t0=0.0)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    opened = threading.Event()
+
+    def stuck_write(_item):
+        opened.set()
+        with open(fifo, "w") as file:  # blocks: no reader
+            file.write("x")
+
+    recorder._write = stuck_write
+    recorder.observe(_tick(1, np.zeros((224, 224, 3), np.uint8)))
+    assert opened.wait(10)
+    counts = recorder.close({"reason": "test"}, timeout=0.3)
+    assert recorder._thread.is_alive() and "unfinished" in counts  # close did not wait for it
+    fd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # let the stuck thread go
+    wait_for(lambda: not recorder._thread.is_alive(), 5)
+    os.close(fd)
