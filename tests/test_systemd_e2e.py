@@ -212,3 +212,38 @@ def test_stop_after_sigkill_turns_the_emulated_board_off(tmp_path: Path):
     board = PCA9685Emulator(state_file=board_file).refresh()
     assert board.all_off(), board.duties()
 
+
+
+class TestWatchdogPingsComeFromCompletedTicks:
+    """systemd's WATCHDOG=1 must prove the loop ticks, not that the process lives. With an
+    in-process watchdog_timeout many ping intervals long, a loop stuck in onnxruntime must
+    still stop the pings at once: every ping is paid for by a completed tick."""
+
+    def test_a_stuck_loop_stops_the_pings_before_the_runtime_watchdog_acts(
+            self, tmp_path: Path) -> None:
+        policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
+        config = tmp_path / "robot.toml"
+        config.write_text("[loop]\nwatchdog_timeout = 2.0\n[sim]\nblackout = [0.5, 100.0]\n")
+        telemetry = tmp_path / "run.jsonl"
+        listener = abstract_listener()
+        watchdog_usec = 300_000  # a ping due every 0.1 s: 20 intervals within the timeout
+        interval = watchdog_usec / 1e6 / 3
+        env = service_env(listener, watchdog_usec, tmp_path / "run")
+        result = jetbot_rt(
+            "run", "--backend", "sim", "--policy", str(policy), "--config", str(config),
+            "--duration", "30", "--telemetry", str(telemetry), env=env,
+        )
+        listener.close()
+        assert result.returncode == 3, result.stdout + result.stderr
+        records = read_telemetry(telemetry)
+        [safe_stop] = [r for r in records if r.get("event") == "safe_stop"]
+        assert safe_stop["reason"].startswith("watchdog"), safe_stop
+        ticks = [r for r in records if "event" not in r]
+        assert len(ticks) >= 5, "it drove until the blackout"
+        pings = listener.times_of("WATCHDOG")
+        assert pings, "a completed tick after READY=1 pings at once"
+        # Pings go out after completed ticks, at most one per interval of the loop's own clock:
+        # never more than the ticks' span (first start to last end) allows.
+        span = ticks[-1]["t"] + ticks[-1]["tick_ms"] / 1e3 - ticks[0]["t"]
+        assert len(pings) <= 1 + span / interval + 1, (len(pings), span, len(ticks))
+        assert len(pings) <= len(ticks)
