@@ -169,6 +169,10 @@ class SimConfig:
     """Wheel angular velocity (rad/s) at duty 1.0."""
     motor_tau: float = field(default=0.05, metadata=_check(lambda v: v >= 0, "a number >= 0"))
     """First-order lag time constant of the motor (s); 0 for none."""
+    supersample: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
+    """Render the camera image this many times wider and taller and area-average it down to
+    the policy's size: closer to what the real camera's scaled frame shows, at about this
+    factor squared times the render cost (docs/SIM.md, "The render-size seam")."""
     seed: int = 0
     camera_stall_after: float | None = field(default=None, metadata=_positive())
     """Fault injection: the camera delivers no new frame after this many simulated seconds."""

@@ -176,6 +176,10 @@ class OnnxPolicy:
             )
         if _dim(height) is None or _dim(width) is None:
             raise UsageError(f"policy {path}: input {model_input.name} has no fixed size: {shape}")
+        declared = metadata.get(META_PREFIX + "input_size")
+        if declared is not None and declared != f"{width}x{height}":
+            raise UsageError(f"policy {path}: metadata says input size {declared}, "
+                             f"the graph's input {model_input.name} is {width}x{height}")
         color = config.color_order or metadata.get(META_PREFIX + "color_order", "RGB")
         pixel_range = config.pixel_range or metadata.get(META_PREFIX + "pixel_range", "0-255")
         if color not in ("RGB", "BGR") or pixel_range not in ("0-255", "0-1", "-1-1"):

@@ -12,13 +12,14 @@ RED = np.zeros((224, 224, 3), np.uint8)
 RED[..., 0] = 255
 
 
-def channel_probe(path, layout="NHWC", size=224, metadata=None):
-    """mu = [mean of channel 0, mean of channel 2] as the model sees its input."""
+def channel_probe(path, layout="NHWC", size=224, metadata=None, reduce="ReduceMean"):
+    """mu = [mean of channel 0, mean of channel 2] as the model sees its input (or another
+    reduction over the image)."""
     axes = [1, 2] if layout == "NHWC" else [2, 3]
     shape = [1, size, size, 3] if layout == "NHWC" else [1, 3, size, size]
     graph = helper.make_graph(
         [
-            helper.make_node("ReduceMean", ["obs"], ["means"], axes=axes, keepdims=0),
+            helper.make_node(reduce, ["obs"], ["means"], axes=axes, keepdims=0),
             helper.make_node("Gather", ["means", "pick"], ["mu"], axis=1),
         ],
         "probe",
@@ -49,6 +50,22 @@ def test_nchw_small_input_is_resized(tmp_path):
     frame = np.zeros((480, 640, 3), np.uint8)
     frame[..., 2] = 200
     assert policy.infer(frame) == pytest.approx([0.0, 200.0])
+
+
+def test_a_frame_of_another_size_is_area_averaged_not_sampled(tmp_path):
+    policy = OnnxPolicy.load(channel_probe(tmp_path / "p.onnx", size=64, reduce="ReduceMax"))
+    frame = np.zeros((720, 1280, 3), np.uint8)
+    for k in range(3):  # 3-pixel stripes, 3.3 periods per output pixel
+        frame[:, k::6, 0] = 255
+    # area averaging leaves 10 or 11 white pixels of 20: grey everywhere (at most 140);
+    # nearest, linear, cubic and Lanczos sampling keep full-white pixels (255)
+    assert policy.infer(frame)[0] <= 141
+
+
+def test_metadata_input_size_must_match_the_graph(tmp_path):
+    path = channel_probe(tmp_path / "p.onnx", size=64, metadata={"jetbot_rt.input_size": "56x56"})
+    with pytest.raises(UsageError, match=r"metadata says input size 56x56.* is 64x64"):
+        OnnxPolicy.load(path)
 
 
 def test_metadata_bgr_and_unit_range(tmp_path):

@@ -16,6 +16,8 @@ import pytest
 import torch
 from runner import run_cli
 
+from jetbot_rt.train.env import POLICY_IMAGE_SIZE
+
 pytest.importorskip("pybullet")
 
 JETBOT_TRAIN = shutil.which("jetbot-train") or str(Path(sys.executable).parent / "jetbot-train")
@@ -25,6 +27,7 @@ METADATA = {
     "jetbot_rt.pixel_range": "0-255",
     "jetbot_rt.max_speed": "0.1",
     "jetbot_rt.task": "forward",
+    "jetbot_rt.input_size": f"{POLICY_IMAGE_SIZE}x{POLICY_IMAGE_SIZE}",
 }
 
 
@@ -86,13 +89,15 @@ def test_export_layout_metadata_and_parity(smoke_run, tmp_path):
     assert "max_speed" in props["jetbot_rt.action"]
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     (obs,) = session.get_inputs()
-    assert obs.name == "obs" and obs.shape[1:] == [224, 224, 3] and obs.type == "tensor(float)"
+    assert obs.name == "obs" and obs.type == "tensor(float)"
+    assert obs.shape[1:] == [POLICY_IMAGE_SIZE, POLICY_IMAGE_SIZE, 3]
     assert [o.name for o in session.get_outputs()] == ["mu", "log_std", "value"]
 
     from jetbot_rt.train.checkpoint import load_checkpoint, model_from_checkpoint
 
     torch_model = model_from_checkpoint(load_checkpoint(smoke_run / "checkpoint.pt"))
-    images = np.random.default_rng(7).integers(0, 256, (4, 224, 224, 3)).astype(np.float32)
+    images = np.random.default_rng(7).integers(
+        0, 256, (4, POLICY_IMAGE_SIZE, POLICY_IMAGE_SIZE, 3)).astype(np.float32)
     got = session.run(None, {"obs": images})
     with torch.no_grad():
         want = [t.numpy() for t in torch_model(torch.from_numpy(images))]

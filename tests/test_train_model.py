@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
+from jetbot_rt.train.env import POLICY_IMAGE_SIZE
 from jetbot_rt.train.model import ActorCritic, ModelConfig
+
+S = POLICY_IMAGE_SIZE
 
 
 def test_a_fresh_policy_drives_forward_with_small_noise():
     torch.manual_seed(0)
     model = ActorCritic()
     images = torch.from_numpy(
-        np.random.default_rng(0).integers(0, 256, (8, 224, 224, 3)).astype(np.float32))
+        np.random.default_rng(0).integers(0, 256, (8, S, S, 3)).astype(np.float32))
     with torch.no_grad():
         mu, log_std, value = model(images)
     assert mu.shape == (8, 2) and log_std.shape == (8, 2) and value.shape == (8, 1)
@@ -24,5 +28,27 @@ def test_the_prior_is_configurable_and_round_trips_through_the_config_dict():
     config = ModelConfig(init_mu=0.0, init_log_std=-0.5)
     model = ActorCritic(ModelConfig.from_dict(config.to_dict()))
     with torch.no_grad():
-        mu, log_std, _ = model(torch.zeros(2, 224, 224, 3))
+        mu, log_std, _ = model(torch.zeros(2, S, S, 3))
     assert mu.abs().max() < 0.05 and torch.allclose(log_std, torch.full_like(log_std, -0.5))
+
+
+def test_input_size_and_pooling_give_the_same_network_as_pooled_by_hand():
+    torch.manual_seed(0)
+    pooled = ActorCritic(ModelConfig(image_size=112, pool=2))
+    torch.manual_seed(0)
+    direct = ActorCritic(ModelConfig(image_size=56, pool=1))
+    images = torch.from_numpy(
+        np.random.default_rng(1).integers(0, 256, (3, 112, 112, 3)).astype(np.float32))
+    by_hand = images.reshape(3, 56, 2, 56, 2, 3).mean((2, 4))
+    with torch.no_grad():
+        for got, want in zip(pooled(images), direct(by_hand), strict=True):
+            assert torch.allclose(got, want, atol=1e-5)
+
+
+def test_a_config_saved_before_image_size_existed_is_the_224_pooled_network():
+    legacy = {k: v for k, v in ModelConfig().to_dict().items() if k not in ("image_size", "pool")}
+    legacy["pool"] = 4
+    config = ModelConfig.from_dict(legacy)
+    assert (config.image_size, config.pool) == (224, 4)
+    with pytest.raises(ValueError, match="multiple of pool"):
+        ModelConfig(image_size=64, pool=3)

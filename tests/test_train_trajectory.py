@@ -30,7 +30,8 @@ def test_env_and_runtime_give_the_same_trajectory(tmp_path, monkeypatch):
     # Tick k of the runtime: frame after k world steps -> mu -> duties -> one step -> pose.
     config = Config()
     policy = load_policy(policy_path, config, single_thread=False)
-    env = JetbotEnv("forward", config, model_max_speed=policy.max_speed)
+    env = JetbotEnv("forward", config, model_max_speed=policy.max_speed,
+                    image_size=(policy.spec.width, policy.spec.height))
     try:
         obs, _ = env.reset(seed=0, options={"start_noise": False})
         env_mu, env_cmd, env_pose = [], [], []

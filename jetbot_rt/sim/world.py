@@ -9,6 +9,7 @@ import sys
 from importlib import resources
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from jetbot_rt.errors import UsageError
@@ -41,9 +42,32 @@ CAMERA_FAR = 5.0
 GRAVITY = -9.81
 BLOCK_HALF_SIZE = 0.025
 
+DEFAULT_IMAGE_SIZE = (224, 224)
+"""(width, height) of a world built without ``image_size``: the bundled forward policy's
+input. The trainer's size is ``jetbot_rt.train.env.POLICY_IMAGE_SIZE``; the runtime renders
+at whatever size the policy's ONNX input declares."""
+
 LEFT, RIGHT, CAMERA_LINK = 0, 1, 3  # joint/link indices in jetbot.urdf's order
 _WHEELS = (LEFT, RIGHT)
 _WHEEL_FORCES = (WHEEL_MAX_TORQUE, WHEEL_MAX_TORQUE)
+
+
+def pixel_centred(projection: tuple[float, ...], size: tuple[int, int]) -> list[float]:
+    """Move a projection's image half a pixel left and down, so that each pixel shows
+    what lies at its centre. As PyBullet's projection stands, TinyRenderer samples a pixel
+    at its corner: its image sits half a pixel right of and above an area-averaged
+    high-resolution view of the same scene, which at 64x64 adds half again to the mean
+    pixel difference between them (docs/SIM.md, "The render-size seam").
+
+    ``projection`` is column-major. x_ndc = x_clip / w_clip with w_clip = -z_view (row 3 is
+    (0, 0, -1, 0)), so adding ``s`` to element 8 (row 0, column 2) moves x_ndc by ``-s``;
+    a pixel is 2 / width in NDC. Likewise element 9 for y (image rows run down).
+    """
+    width, height = size
+    shifted = list(projection)
+    shifted[8] += 1.0 / width
+    shifted[9] += 1.0 / height
+    return shifted
 
 
 def _asset(name: str) -> str:
@@ -54,7 +78,8 @@ class JetbotWorld:
     """A JetBot, a room and a red goal block in one PyBullet client of its own.
 
     Several worlds can live in one process (each has its own client; the global default
-    client is never used). ``image_size`` is (width, height) of ``render()``'s image.
+    client is never used). ``image_size`` is (width, height) of ``render()``'s image;
+    ``[sim] supersample`` renders it that many times larger and area-averages it down.
     """
 
     def __init__(
@@ -62,11 +87,14 @@ class JetbotWorld:
         sim: SimConfig,
         *,
         gui: bool = False,
-        image_size: tuple[int, int] = (224, 224),
+        image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE,
     ) -> None:
         self._sim = sim
         self._dt_physics = 1.0 / sim.physics_hz
-        self._width, self._height = image_size
+        self._width, self._height = (int(v) for v in image_size)
+        if self._width < 1 or self._height < 1:
+            raise UsageError(f"image size must be positive, got {image_size}")
+        self._render_size = (self._width * sim.supersample, self._height * sim.supersample)
         if gui and sys.platform.startswith("linux") and not (
             os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
         ):
@@ -74,10 +102,10 @@ class JetbotWorld:
         self._client = p.connect(p.GUI if gui else p.DIRECT)
         if self._client < 0:
             raise UsageError("cannot open a PyBullet " + ("window" if gui else "client"))
-        self._projection = p.computeProjectionMatrixFOV(
+        self._projection = pixel_centred(p.computeProjectionMatrixFOV(
             CAMERA_VFOV_DEG, CAMERA_ASPECT, CAMERA_NEAR, CAMERA_FAR,
             physicsClientId=self._client,
-        )
+        ), self._render_size)
         self._gui = gui
         if gui:
             p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=self._client)
@@ -178,13 +206,16 @@ class JetbotWorld:
             eye.tolist(), (eye + rotation[:, 0]).tolist(), rotation[:, 2].tolist(),
             physicsClientId=c,
         )
+        width, height = self._render_size
         _, _, rgba, _, _ = p.getCameraImage(
-            self._width, self._height, view, self._projection,
+            width, height, view, self._projection,
             shadow=0, renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
             physicsClientId=c,
         )
-        rgba = np.asarray(rgba, dtype=np.uint8).reshape(self._height, self._width, 4)
-        return np.ascontiguousarray(rgba[:, :, :3])
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3]
+        if self._sim.supersample > 1:
+            return cv2.resize(rgb, (self._width, self._height), interpolation=cv2.INTER_AREA)
+        return np.ascontiguousarray(rgb)
 
     def _robot_frame(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """base_link's frame in the world. PyBullet reports a base's centre of mass, which

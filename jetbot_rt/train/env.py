@@ -20,7 +20,9 @@ from jetbot_rt.actions import ActionPipeline, resolve_max_speed
 from jetbot_rt.config import Config
 from jetbot_rt.errors import UsageError
 
-IMAGE_SIZE = (224, 224)
+POLICY_IMAGE_SIZE = 64
+"""Side of the square camera image the trainer renders and its networks take (the one
+source of the training size): docs/SIM.md, "The render-size seam", says why 64."""
 MIN_REWARD_DISTANCE = 0.01
 """m; the reward's 1/d is evaluated at no less than this (bodies never get this close)."""
 
@@ -80,7 +82,9 @@ def max_speed_of(config: Config) -> float:
 
 
 class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
-    """Observation: the 224x224x3 uint8 RGB camera image. Action: ``[left, right]`` in [-1, 1].
+    """Observation: the camera image, HxWx3 uint8 RGB (``image_size`` = (width, height),
+    default ``POLICY_IMAGE_SIZE`` square; an evaluation passes its policy's input size).
+    Action: ``[left, right]`` in [-1, 1].
 
     ``model_max_speed`` is the policy's metadata value, used (as by the runtime) when the
     config sets none. ``reset(options={"start_noise": False})`` starts exactly at the task's
@@ -98,6 +102,7 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         render_mode: str | None = None,
         start_noise: bool = True,
         model_max_speed: float | None = None,
+        image_size: tuple[int, int] = (POLICY_IMAGE_SIZE, POLICY_IMAGE_SIZE),
     ) -> None:
         from jetbot_rt.sim.world import JetbotWorld  # pybullet: only when an env is built
 
@@ -110,9 +115,10 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.pipeline = action_pipeline_of(self.config, model_max_speed)
         self.period = self.config.loop.period
         self.metadata = {**self.metadata, "render_fps": self.config.loop.rate_hz}
-        self.observation_space = spaces.Box(0, 255, (*IMAGE_SIZE[::-1], 3), dtype=np.uint8)
+        width, height = (int(v) for v in image_size)
+        self.observation_space = spaces.Box(0, 255, (height, width, 3), dtype=np.uint8)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
-        self.world = JetbotWorld(self.config.sim, image_size=IMAGE_SIZE)
+        self.world = JetbotWorld(self.config.sim, image_size=(width, height))
         self._frame = np.zeros(self.observation_space.shape, dtype=np.uint8)
         self._steps = 0
 

@@ -42,7 +42,8 @@ def run_episode(env: JetbotEnv, policy: OnnxPolicy, seed: int | None,
 
 def _run_episodes(policy_path: str, task: str, config: Config, seeds: list[int]) -> list[dict]:
     policy = load_policy(policy_path, config)
-    env = JetbotEnv(task, config, model_max_speed=policy.max_speed)
+    env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
+                    image_size=(policy.spec.width, policy.spec.height))
     try:
         return [run_episode(env, policy, seed) for seed in seeds]
     finally:

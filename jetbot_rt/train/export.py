@@ -16,7 +16,7 @@ import jetbot_rt
 from jetbot_rt.actions import DEFAULT_MAX_SPEED
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.checkpoint import load_checkpoint, model_from_checkpoint
-from jetbot_rt.train.model import IMAGE_SIZE, ActorCritic
+from jetbot_rt.train.model import ActorCritic
 
 DEFAULT_OPSET = 16
 PARITY_TOLERANCE = 1e-4
@@ -27,9 +27,10 @@ class ExportError(UsageError):
     """The exported model does not match the trained one (exit 2, one line)."""
 
 
-def policy_metadata(task: str, max_speed: float) -> dict[str, str]:
+def policy_metadata(task: str, max_speed: float, image_size: int) -> dict[str, str]:
     return {
         "jetbot_rt.layout": "NHWC",
+        "jetbot_rt.input_size": f"{image_size}x{image_size}",
         "jetbot_rt.color_order": "RGB",
         "jetbot_rt.pixel_range": "0-255",
         "jetbot_rt.action": ACTION_MEANING,
@@ -61,7 +62,8 @@ def export_model(
     """Write ``out`` and return the parity error; raise ``ExportError`` if it exceeds 1e-4."""
     out = Path(out)
     model = model.eval()
-    dummy = torch.rand(2, IMAGE_SIZE, IMAGE_SIZE, 3) * 255.0
+    size = model.config.image_size
+    dummy = torch.rand(2, size, size, 3) * 255.0
     buffer = io.BytesIO()
     torch.onnx.export(
         _ExportedPolicy(model),
@@ -74,7 +76,7 @@ def export_model(
         opset_version=opset,
     )
     proto = onnx.load_model_from_string(buffer.getvalue())
-    onnx.helper.set_model_props(proto, policy_metadata(task, max_speed))
+    onnx.helper.set_model_props(proto, policy_metadata(task, max_speed, size))
     onnx.checker.check_model(proto)
     data = proto.SerializeToString()
     error = parity_error(model, data)
@@ -94,7 +96,8 @@ def export_model(
 def parity_error(model: ActorCritic, onnx_bytes: bytes, batch: int = 3, seed: int = 0) -> float:
     """Max abs difference over all outputs for random images, including the extremes 0/255."""
     rng = np.random.default_rng(seed)
-    images = rng.integers(0, 256, size=(batch, IMAGE_SIZE, IMAGE_SIZE, 3)).astype(np.float32)
+    size = model.config.image_size
+    images = rng.integers(0, 256, size=(batch, size, size, 3)).astype(np.float32)
     images[0] = 0.0
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1

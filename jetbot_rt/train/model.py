@@ -1,10 +1,11 @@
 """The actor-critic network: camera image in, wheel-command Gaussian and state value out.
 
-It takes the exact tensor the runtime feeds an ONNX policy -- ``[N, 224, 224, 3]`` float32
-RGB in 0..255 (NHWC, the rl_games layout) -- and does its own scaling and downsampling, so the
-exported graph needs no preprocessing outside it. Area pooling to 56x56 first: the scene (a
-red block on a plain floor) needs no more detail, and it keeps the net at ~0.2 M parameters
-(the seed's rl_games network had ~19 M).
+It takes the exact tensor the runtime feeds an ONNX policy -- ``[N, S, S, 3]`` float32 RGB
+in 0..255 (NHWC, the rl_games layout), S = ``ModelConfig.image_size`` -- and does its own
+scaling (and, with ``pool`` > 1, area downsampling), so the exported graph needs no
+preprocessing outside it. The env renders at S (64 by default, ``POLICY_IMAGE_SIZE``): the
+scene needs no more detail, and the net stays at ~0.3 M parameters (the seed's rl_games
+network had ~19 M). The first bundled policy took 224x224 and pooled it by 4 to 56x56.
 """
 
 from __future__ import annotations
@@ -14,13 +15,19 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-IMAGE_SIZE = 224
+from jetbot_rt.train.env import POLICY_IMAGE_SIZE
+
+LEGACY_IMAGE_SIZE, LEGACY_POOL = 224, 4
+"""What a model config without ``image_size`` (written before it existed) meant."""
 
 
 @dataclass(frozen=True)
 class ModelConfig:
-    pool: int = 4
-    """Area-pooling factor applied to the 224x224 input before the first convolution."""
+    image_size: int = POLICY_IMAGE_SIZE
+    """Side of the square input image (the env renders at this size, the ONNX input has it)."""
+    pool: int = 1
+    """Area-pooling factor applied to the input before the first convolution (divides
+    ``image_size``)."""
     channels: tuple[int, int, int] = (16, 32, 32)
     """Output channels of the three stride-2 convolutions."""
     hidden: int = 128
@@ -38,7 +45,14 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> ModelConfig:
+        if "image_size" not in data:
+            data = {**data, "image_size": LEGACY_IMAGE_SIZE, "pool": data.get("pool", LEGACY_POOL)}
         return cls(**{**data, "channels": tuple(data["channels"])})
+
+    def __post_init__(self) -> None:
+        if self.image_size < 8 or self.pool < 1 or self.image_size % self.pool:
+            raise ValueError(f"image_size {self.image_size} must be >= 8 and a multiple of "
+                             f"pool {self.pool}")
 
 
 def _layer_init(layer: nn.Module, gain: float) -> nn.Module:
@@ -52,7 +66,7 @@ class ActorCritic(nn.Module):
         super().__init__()
         self.config = config
         c1, c2, c3 = config.channels
-        side = IMAGE_SIZE // config.pool
+        side = config.image_size // config.pool
         for _ in range(3):
             side = (side + 1) // 2  # stride 2 with "same" padding
         relu_gain = nn.init.calculate_gain("relu")
@@ -73,18 +87,20 @@ class ActorCritic(nn.Module):
         self.log_std = nn.Parameter(torch.full((2,), config.init_log_std))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``obs``: ``[N, 224, 224, 3]`` RGB, 0..255 (any float or uint8 dtype).
+        """``obs``: ``[N, S, S, 3]`` RGB, 0..255 (any float or uint8 dtype), S = image_size.
 
         Returns ``mu`` ``[N, 2]``, ``log_std`` ``[N, 2]``, ``value`` ``[N, 1]``.
         """
         return self.heads(self.preprocess(obs))
 
     def preprocess(self, obs: torch.Tensor) -> torch.Tensor:
-        """Fixed part: area-pool NHWC 0..255 to NCHW 0..1 at 1/pool size. Nothing to learn,
-        so PPO runs it once per collected frame instead of once per epoch."""
-        pool, side = self.config.pool, IMAGE_SIZE // self.config.pool
-        pooled = obs.float().reshape(-1, side, pool, side, pool, 3).sum((2, 4))
-        return pooled.permute(0, 3, 1, 2) * (1.0 / (pool * pool * 255.0))
+        """Fixed part: NHWC 0..255 to NCHW 0..1, area-pooled to 1/pool size. Nothing to
+        learn, so PPO runs it once per collected frame instead of once per epoch."""
+        pool, side = self.config.pool, self.config.image_size // self.config.pool
+        x = obs.float()
+        if pool > 1:
+            x = x.reshape(-1, side, pool, side, pool, 3).sum((2, 4))
+        return x.permute(0, 3, 1, 2) * (1.0 / (pool * pool * 255.0))
 
     def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``x``: output of ``preprocess``."""

@@ -144,8 +144,10 @@ def _prepare_out(out: Path) -> None:
         raise UsageError(f"cannot write to output directory {out}: {exc.strerror or exc}") from None
 
 
-def make_vector_env(args: PPOArgs) -> AsyncVectorEnv:
-    factories = [partial(make_task_env, args.task, args.config) for _ in range(args.num_envs)]
+def make_vector_env(args: PPOArgs, image_size: int) -> AsyncVectorEnv:
+    size = (image_size, image_size)
+    factories = [partial(make_task_env, args.task, args.config, image_size=size)
+                 for _ in range(args.num_envs)]
     return AsyncVectorEnv(
         factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP, shared_memory=True
     )
@@ -191,7 +193,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
         raise UsageError(f"unknown reward transform {args.reward_transform!r} (symlog, none)")
     symlog = args.reward_transform == "symlog"
 
-    envs = make_vector_env(args)
+    envs = make_vector_env(args, model.config.image_size)
     with torch.no_grad():
         frame = torch.zeros((1, *envs.single_observation_space.shape))
         obs_shape = model.preprocess(frame).shape[1:]
