@@ -12,6 +12,7 @@ import sys
 
 from jetbot_rt import __version__
 from jetbot_rt.errors import EXIT_USAGE, UsageError
+from jetbot_rt.extras import sim_problem
 
 # subcommand -> (module with add_arguments/run, help)
 COMMANDS = {
@@ -65,6 +66,18 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+
+
+def train_main(argv: list[str] | None = None) -> int:
+    """``jetbot-train``'s entry point: says in one line when this Python cannot train (the
+    robot's 3.8, or a Python without a pybullet wheel) before importing the trainer."""
+    problem = sim_problem()
+    if problem:
+        print(f"jetbot-train: error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
+    from jetbot_rt.train.cli import main as train_cli
+
+    return train_cli(argv)
 
 
 if __name__ == "__main__":

@@ -124,7 +124,7 @@ class ControlServer:
         while not self._closed.is_set():
             try:
                 conn, _ = self._sock.accept()
-            except TimeoutError:
+            except socket.timeout:  # TimeoutError only from Python 3.10 on
                 continue
             except OSError:
                 return

@@ -10,11 +10,11 @@ import argparse
 import contextlib
 import grp
 import os
+import pkgutil
 import pwd
 import shutil
 import sys
 import sysconfig
-from importlib import resources
 from pathlib import Path, PurePosixPath
 
 from jetbot_rt.errors import UsageError
@@ -141,7 +141,7 @@ def protect_home(executable: Path, config: PurePosixPath) -> str:
     interpreter = shebang_interpreter(executable)
     if interpreter is not None:
         paths.append(interpreter)
-    in_home = any(path.is_relative_to(home) for path in paths for home in HOME_DIRS)
+    in_home = any(home == path or home in path.parents for path in paths for home in HOME_DIRS)
     return "read-only" if in_home else "yes"
 
 
@@ -178,16 +178,19 @@ def systemd_word(word: str) -> str:
     return word
 
 
+def _package_data(name: str) -> str:
+    # pkgutil.get_data: Python 3.8 has no importlib.resources.files.
+    data = pkgutil.get_data("jetbot_rt", f"data/{name}")
+    assert data is not None  # the jetbot_rt package has a loader
+    return data.decode("utf-8")
+
+
 def unit_template() -> str:
-    return resources.files("jetbot_rt").joinpath("data", UNIT_NAME).read_text(encoding="utf-8")
+    return _package_data(UNIT_NAME)
 
 
 def default_config_text() -> str:
-    return (
-        resources.files("jetbot_rt")
-        .joinpath("data", "default-config.toml")
-        .read_text(encoding="utf-8")
-    )
+    return _package_data("default-config.toml")
 
 
 def staged(root: Path, target: PurePosixPath) -> Path:

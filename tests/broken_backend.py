@@ -1,5 +1,7 @@
 """A backend whose camera fails with an error nobody planned for (a driver bug)."""
 
+from __future__ import annotations
+
 from jetbot_rt.hal.base import Backend
 from jetbot_rt.hal.null import NullCamera, NullDrive
 

@@ -19,6 +19,7 @@ from runner import RuntimeProcess, processes_with, run_cli, wait_for
 
 from jetbot_rt import config as config_module
 from jetbot_rt.cli import main
+from jetbot_rt.extras import sim_problem
 
 # Every key with a value of the right type but out of its range (or not one of its choices).
 OUT_OF_RANGE = {
@@ -194,6 +195,7 @@ def test_broken_models_are_refused_before_any_motor_command(tmp_path, case) -> N
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(sim_problem() is not None, reason=str(sim_problem()))
 def test_a_policy_that_hangs_on_its_first_frame_is_refused_at_warm_up(tmp_path) -> None:
     """The warm-up runs in a thread with a time limit ([loop] warmup_timeout): a model that
     never returns is a usage error, and the process ends although that thread cannot."""

@@ -156,7 +156,7 @@ class MotorHatDrive(Drive):
             for number in self._motor_numbers:
                 self.kit._pca.channels[MOTORHAT_PWM_CHANNEL[number]].duty_cycle = 0xFFFF
             self._enables_off = False
-        for motor, duty in zip(self._motors, duties, strict=True):
+        for motor, duty in zip(self._motors, duties):
             motor.throttle = duty if duty != 0 else None
 
     def stop(self) -> None:

@@ -244,7 +244,7 @@ class PCA9685Emulator:
         for value in payload[1:]:
             self._store(self._pointer, value)
             self._pointer = self._next(self._pointer)
-        self.peak_duty = [max(p, d) for p, d in zip(self.peak_duty, self.duties(), strict=True)]
+        self.peak_duty = [max(p, d) for p, d in zip(self.peak_duty, self.duties())]
 
     def _read(self, length: int) -> list[int]:
         values = []

@@ -4,16 +4,14 @@ only when their backend is asked for, so ``--backend real`` never imports pybull
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from jetbot_rt.errors import UsageError
+from jetbot_rt.extras import sim_problem
 
 if TYPE_CHECKING:
     from jetbot_rt.config import Config
     from jetbot_rt.hal.base import Backend
-
-BackendFactory = Callable[["Config", "BackendOptions"], "Backend"]
 
 # name -> module that defines ``build_backend(config, options)``
 BACKEND_MODULES: dict[str, str] = {
@@ -35,5 +33,9 @@ def make_backend(name: str, config: Config, options: BackendOptions | None = Non
     if name not in BACKEND_MODULES:
         known = ", ".join(sorted(BACKEND_MODULES))
         raise UsageError(f"unknown backend {name!r} (known: {known})")
+    if name == "sim":
+        problem = sim_problem()
+        if problem:
+            raise UsageError(f"--backend sim: {problem}")
     module = importlib.import_module(BACKEND_MODULES[name])
     return module.build_backend(config, options or BackendOptions())
