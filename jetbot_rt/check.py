@@ -9,13 +9,13 @@ Exit 1 if any row fails.
 from __future__ import annotations
 
 import argparse
-import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from jetbot_rt import signals
 from jetbot_rt.config import Config, load_config
 from jetbot_rt.errors import UsageError, first_line
 
@@ -64,19 +64,15 @@ def check_motor_board(config: Config) -> str:
     )
 
 
-def _interrupt(signum: int, _frame: Any) -> None:
-    raise KeyboardInterrupt(signal.Signals(signum).name)
-
-
 def spin_wheels(config: Config) -> str:
     from jetbot_rt.control import default_socket_path, runtime_answers
     from jetbot_rt.hal.motors import open_drive
 
     if runtime_answers(default_socket_path()):
         raise RuntimeError("a jetbot-rt runtime is driving; stop it first (jetbot-rt stop)")
-    # SIGTERM/SIGHUP mid-pulse must reach the finally below, like Ctrl-C does.
-    for signum in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, _interrupt)
+    # Every signal that would end or suspend the process raises ``Interrupted`` here (the
+    # CLI's handler): the pulse ends in the finally below; a second signal cannot cut the
+    # stop short (deferred), it is raised once the board is off.
     drive = open_drive(config.motors)
     try:
         for left, right in ((SPIN_DUTY, 0.0), (0.0, SPIN_DUTY)):
@@ -85,8 +81,9 @@ def spin_wheels(config: Config) -> str:
             drive.write(0.0, 0.0)
             time.sleep(0.2)
     finally:
-        drive.stop()
-        drive.close()
+        with signals.deferred():
+            drive.stop()
+            drive.close()
     return f"left, then right wheel forward at duty {SPIN_DUTY} for {SPIN_SECONDS} s; all off"
 
 

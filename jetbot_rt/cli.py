@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-from jetbot_rt import __version__
+from jetbot_rt import __version__, signals
 from jetbot_rt.errors import EXIT_USAGE, UsageError
 from jetbot_rt.extras import sim_problem
 
@@ -46,7 +46,31 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
     return parser, modules
 
 
+NEVER_INTERRUPTED = {"stop"}
+"""Commands a signal never cuts short: ``stop`` (systemd's ExecStopPost, an operator's last
+resort) finishes writing the stop, then exits with its own code; SIGKILL still ends it."""
+
+
 def main(argv: list[str] | None = None) -> int:
+    # First: a signal during the imports, the config or the model load ends the command in
+    # order (one line, exit 0), not with a KeyboardInterrupt traceback or a silent death.
+    # ``jetbot-rt run`` replaces this with its safe-stop handlers before it opens the board.
+    signals.install(signals.raise_interrupted)
+    command = next((a for a in (sys.argv[1:] if argv is None else argv)
+                    if not a.startswith("-")), "")
+    try:
+        if command in NEVER_INTERRUPTED:
+            with signals.deferred(raise_after=False):
+                return _main(argv)
+        return _main(argv)
+    except signals.Interrupted as exc:
+        print(f"jetbot-rt {command}: stopped by {exc}".replace("  ", " "), file=sys.stderr,
+              flush=True)
+        # An orderly end, as a signal while driving is; a self-test cut short did not pass.
+        return 1 if command == "check" else 0
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser, modules = build_parser()
     # Only the chosen subcommand's module is imported to add its arguments.

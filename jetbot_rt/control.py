@@ -4,15 +4,22 @@
 Protocol: one line per connection. ``stop`` -> ``ok`` (after ``on_stop`` has run), ``ping``
 -> ``pong``. The socket is mode 0600 in a directory of mode 0700, so only the runtime's user
 (and root) can stop it this way.
+
+One thread serves every connection through a selector, never blocking on any one client: a
+client that connects and says nothing, or sends half a line, or never reads the answer,
+delays nobody else's ``stop``. Such a client is dropped after ``CLIENT_TIMEOUT_S``; beyond
+``MAX_CLIENTS`` open connections the oldest is dropped to make room.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import selectors
 import socket
 import struct
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +31,9 @@ SOCKET_NAME = "control.sock"
 # shell that has no $RUNTIME_DIRECTORY.
 SERVICE_SOCKET = Path("/run/jetbot-rt") / SOCKET_NAME
 _MAX_REQUEST = 64
+CLIENT_TIMEOUT_S = 1.0
+"""A connection that has not sent its line within this time is closed."""
+MAX_CLIENTS = 16
 
 
 def default_socket_path() -> Path:
@@ -100,8 +110,8 @@ class ControlServer:
             os.umask(old_umask)
         os.chmod(self.path, 0o600)
         self._inode = self.path.stat().st_ino
-        sock.listen(4)
-        sock.settimeout(0.2)  # lets the thread notice close()
+        sock.listen(MAX_CLIENTS)
+        sock.setblocking(False)
         self._sock = sock
         self._thread = threading.Thread(target=self._serve, name="jetbot-rt-control", daemon=True)
         self._thread.start()
@@ -121,22 +131,70 @@ class ControlServer:
 
     def _serve(self) -> None:
         assert self._sock is not None
-        while not self._closed.is_set():
-            try:
-                conn, _ = self._sock.accept()
-            except socket.timeout:  # TimeoutError only from Python 3.10 on
-                continue
-            except OSError:
-                return
-            with conn:
-                try:
-                    self._answer(conn)
-                except OSError:
-                    continue  # a client that went away mid-request
+        selector = selectors.DefaultSelector()
+        selector.register(self._sock, selectors.EVENT_READ)
+        clients: dict[socket.socket, tuple[float, bytes]] = {}  # -> (connected at, bytes)
+        try:
+            while not self._closed.is_set():
+                for key, _events in selector.select(timeout=0.1):
+                    if key.fileobj is self._sock:
+                        self._accept(selector, clients)
+                    else:
+                        self._read(selector, clients, key.fileobj)  # type: ignore[arg-type]
+                now = time.monotonic()
+                for conn, (since, _) in list(clients.items()):
+                    if now - since > CLIENT_TIMEOUT_S:
+                        self._drop(selector, clients, conn)
+        finally:
+            for conn in list(clients):
+                self._drop(selector, clients, conn)
+            selector.close()
 
-    def _answer(self, conn: socket.socket) -> None:
-        conn.settimeout(1.0)
-        request = conn.recv(_MAX_REQUEST).decode(errors="replace").strip()
+    def _accept(self, selector: selectors.BaseSelector,
+                clients: dict[socket.socket, tuple[float, bytes]]) -> None:
+        assert self._sock is not None
+        try:
+            conn, _ = self._sock.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            if not self._closed.is_set():
+                raise
+            return
+        if len(clients) >= MAX_CLIENTS:  # make room: the oldest has waited longest
+            oldest = min(clients, key=lambda c: clients[c][0])
+            self._drop(selector, clients, oldest)
+        conn.setblocking(False)
+        clients[conn] = (time.monotonic(), b"")
+        selector.register(conn, selectors.EVENT_READ)
+
+    def _read(self, selector: selectors.BaseSelector,
+              clients: dict[socket.socket, tuple[float, bytes]], conn: socket.socket) -> None:
+        since, data = clients[conn]
+        try:
+            chunk = conn.recv(_MAX_REQUEST)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            chunk = b""
+        data += chunk
+        if chunk and b"\n" not in data and len(data) < _MAX_REQUEST:
+            clients[conn] = (since, data)
+            return
+        with contextlib.suppress(OSError):  # a client gone, or one that does not read
+            self._answer(conn, data)
+        self._drop(selector, clients, conn)
+
+    @staticmethod
+    def _drop(selector: selectors.BaseSelector,
+              clients: dict[socket.socket, tuple[float, bytes]], conn: socket.socket) -> None:
+        clients.pop(conn, None)
+        with contextlib.suppress(KeyError, ValueError):
+            selector.unregister(conn)
+        conn.close()
+
+    def _answer(self, conn: socket.socket, data: bytes) -> None:
+        request = data.decode(errors="replace").strip()
         if request == "stop":
             try:
                 self.on_stop(f"jetbot-rt stop from pid {_peer_pid(conn)}")
@@ -147,7 +205,9 @@ class ControlServer:
             reply = "pong"
         else:
             reply = "error unknown request"
-        conn.sendall(reply.encode() + b"\n")
+        # Non-blocking: an answer of a few bytes fits in the socket buffer; a client that
+        # never reads cannot hold this thread.
+        conn.send(reply.encode() + b"\n")
 
 
 def _candidates(path: Path | None) -> list[Path]:

@@ -33,6 +33,7 @@ import numpy as np
 
 from jetbot_rt.errors import UsageError
 from jetbot_rt.loop import TickResult
+from jetbot_rt.telemetry import dumps, finite
 
 FORMAT = "jetbot_rt.recording"
 VERSION = 1
@@ -81,7 +82,7 @@ def prepare_directory(path: Path) -> None:
 
 
 def _dump(record: dict[str, Any]) -> str:
-    return json.dumps(record, separators=(",", ":")) + "\n"
+    return dumps(record) + "\n"  # strict JSON, as telemetry writes it
 
 
 class Recorder:
@@ -230,7 +231,7 @@ class Recorder:
             self._ticks.close()
         with contextlib.suppress(OSError):  # the directory may be gone: the error said so
             (self.path / "summary.json").write_text(
-                json.dumps({**self.counts(), "run": self._run_summary}, indent=1) + "\n")
+                json.dumps(finite({**self.counts(), "run": self._run_summary}), indent=1) + "\n")
 
     # ---- the end ----------------------------------------------------------------------------
 

@@ -11,7 +11,6 @@ import argparse
 import contextlib
 import faulthandler
 import os
-import signal
 import sys
 import threading
 import time
@@ -19,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from jetbot_rt import signals
 from jetbot_rt.actions import ActionPipeline, resolve_max_speed
 from jetbot_rt.config import Config, load_config, set_value
 from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE, Fault, UsageError, first_line
@@ -30,7 +30,12 @@ from jetbot_rt.recorder import open_for_run as open_recorder
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
 from jetbot_rt.telemetry import Telemetry
 
-STOP_SIGNALS = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
+START_POLL_S = 0.02
+"""How often the main thread looks at the latch while a start-up step runs in a worker."""
+
+
+class _Cancelled(BaseException):
+    """A stop request (signal, control socket) arrived during start-up."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -102,9 +107,48 @@ class Runtime:
             raise UsageError("no bundled policy in this installation; pass --policy FILE.onnx")
         return bundled
 
-    def prepare(self) -> OnnxPolicy:
-        """Everything that can fail on bad input, before any motor is touched."""
-        policy = OnnxPolicy.load(self._policy_path(), self.config.policy)
+    def _in_worker(self, what: str, target: Any, limit: float) -> Any:
+        """Run a start-up step that may sit in native code for minutes (a model load, a
+        TensorRT build, the first inference) in a worker thread, so that a stop request or a
+        signal ends the start within ``START_POLL_S``, not when the step returns."""
+        result: list[Any] = []
+        error: list[BaseException] = []
+
+        def body() -> None:
+            try:
+                result.append(target())
+            except BaseException as exc:
+                error.append(exc)
+
+        worker = threading.Thread(target=body, name=f"jetbot-rt-{what}", daemon=True)
+        worker.start()
+        deadline = time.monotonic() + limit
+        while worker.is_alive():
+            if self.latch.tripped:
+                self.stuck_thread = worker
+                raise _Cancelled
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self.stuck_thread = worker
+                raise TimeoutError
+            worker.join(min(remaining, START_POLL_S))
+        if error:
+            raise error[0]
+        return result[0]
+
+    def load_policy(self) -> OnnxPolicy:
+        path = self._policy_path()
+        limit = self.config.loop.warmup_timeout
+        try:
+            return self._in_worker(
+                "load", lambda: OnnxPolicy.load(path, self.config.policy), limit
+            )
+        except TimeoutError:
+            raise UsageError(f"policy {path}: loading did not finish within {limit:.1f} s") \
+                from None
+
+    def prepare(self, policy: OnnxPolicy) -> None:
+        """Everything else that can fail on bad input, before any motor is touched."""
         spec = policy.spec
         self.actions = ActionPipeline(
             max_speed=resolve_max_speed(self.config.actions.max_speed, policy.max_speed),
@@ -120,45 +164,48 @@ class Runtime:
         self.latch.on_trip(self._log_trip)
         if self.recorder is not None:
             self.latch.on_trip(self._record_trip)
-        return policy
+        self.latch.on_trip(lambda _reason: self.backend.camera.cancel_start())
 
     def _record_trip(self, reason: str) -> None:
         assert self.recorder is not None
         self.recorder.event("safe_stop", reason=reason, fault=self.latch.fault, cmd=[0.0, 0.0])
 
     def warm_up(self, policy: OnnxPolicy) -> None:
-        """Start the camera, run the policy on a real frame, refuse a policy that is too slow."""
+        """Start the camera, run the policy on a real frame, refuse a policy that is too slow
+        or whose first answer is not a finite action (bad input: no motor has moved)."""
         camera = self.backend.camera
         camera.start()
+        if self.latch.tripped:
+            raise _Cancelled
         frame = camera.read()
         if frame is None:
             raise UsageError("camera started but delivered no frame")
         period = self.config.loop.period
         limit = self.config.loop.warmup_timeout
-        timings: list[float] = []
-        error: list[BaseException] = []
 
-        def run_warmup() -> None:
-            try:
-                policy.infer(frame.image)  # first run allocates; not timed
-                for _ in range(self.config.loop.warmup_runs):
-                    t0 = time.perf_counter()
-                    policy.infer(frame.image)
-                    timings.append(time.perf_counter() - t0)
-            except BaseException as exc:
-                error.append(exc)
+        def run_warmup() -> tuple[Any, list[float]]:
+            first = policy.infer(frame.image)  # first run allocates; not timed
+            timings = []
+            for _ in range(self.config.loop.warmup_runs):
+                t0 = time.perf_counter()
+                policy.infer(frame.image)
+                timings.append(time.perf_counter() - t0)
+            return first, timings
 
-        worker = threading.Thread(target=run_warmup, name="jetbot-rt-warmup", daemon=True)
-        worker.start()
-        worker.join(limit)
-        if worker.is_alive():
-            self.stuck_thread = worker
+        try:
+            first, timings = self._in_worker("warmup", run_warmup, limit)
+        except TimeoutError:
             raise UsageError(
                 f"policy {policy.path}: warm-up inference did not finish within {limit:.1f} s"
-            )
-        if error:
+            ) from None
+        except Exception as exc:
             raise UsageError(f"policy {policy.path}: warm-up inference failed: "
-                             f"{first_line(error[0])}")
+                             f"{first_line(exc)}") from None
+        try:
+            self.actions.duties(first)
+        except Fault as exc:
+            raise UsageError(f"policy {policy.path}: on the first camera frame: {exc} "
+                             "(refused before driving)") from None
         fastest = min(timings)
         self.warmup_ms = fastest * 1e3
         if fastest > period:
@@ -171,17 +218,30 @@ class Runtime:
     def _install_signal_handlers(self) -> None:
         def handler(signum: int, _frame: Any) -> None:
             # Python runs this in the main thread between two bytecodes, possibly while that
-            # thread holds the drive's or the telemetry's lock; tripping here could deadlock.
-            threading.Thread(
-                target=self.latch.trip,
-                args=(f"{STOP_SIGNALS.get(signum, signum)} received",),
-                kwargs={"fault": False},
-                name="jetbot-rt-signal",
-                daemon=True,
-            ).start()
+            # thread holds the drive's lock; tripping here could deadlock.
+            threading.Thread(target=self._on_signal, args=(signum,), name="jetbot-rt-signal",
+                             daemon=True).start()
 
-        for signum in STOP_SIGNALS:
-            signal.signal(signum, handler)
+        signals.install(handler)
+
+    def _on_signal(self, signum: int) -> None:
+        self.latch.trip(f"{signals.name(signum)} received", fault=False)
+        if signum in signals.SUSPENDING:
+            # Ctrl-Z: the motors are zero before the process stops (another trip may still be
+            # running its callbacks: stop again, it is bounded); on SIGCONT the run ends.
+            if self.drive is not None:
+                self.drive.stop()
+            signals.suspend_self()
+
+    def _thread_died(self, args: Any) -> None:
+        """``threading.excepthook``: no thread of the runtime may die silently."""
+        if args.exc_type is SystemExit:
+            return
+        thread = args.thread.name if args.thread is not None else "a thread"
+        reason = (f"thread {thread} died: {args.exc_type.__name__}: "
+                  f"{first_line(args.exc_value) if args.exc_value else ''}")
+        print(f"jetbot-rt run: {reason}", file=sys.stderr, flush=True)
+        self.latch.trip(reason)
 
     def _status(self) -> str:
         stats = self.loop.stats if self.loop else None
@@ -198,6 +258,7 @@ class Runtime:
         from jetbot_rt.notify import Notifier
 
         self._install_signal_handlers()
+        threading.excepthook = self._thread_died
         self.notifier = Notifier.from_env()
         try:
             # The control socket first: a second jetbot-rt is refused before it opens (and
@@ -206,17 +267,34 @@ class Runtime:
                 on_stop=lambda reason: self.latch.trip(reason, fault=False)
             )
             self.control.start()
-            policy = self.prepare()
+            policy = self.load_policy()
+            if self.latch.tripped:
+                raise _Cancelled
+            self.prepare(policy)
             assert self.drive is not None
             self.drive.stop()  # start from a known state: whatever the board held is cleared
-            if not self.latch.tripped:  # a signal or stop request during start-up ends it here
-                self.warm_up(policy)
             if self.latch.tripped:
-                return self._finish()
+                raise _Cancelled
+            self.warm_up(policy)
+            if self.latch.tripped:
+                raise _Cancelled
             return self._drive(policy)
+        except _Cancelled:
+            return self.leave(self._finish())
         except BaseException:
             self._final_stop()
             raise
+
+    def leave(self, result: RunResult) -> RunResult:
+        """Return ``result``, or end the process with it if a thread is stuck in native code
+        (a load, a warm-up or a tick): the interpreter's shutdown could wait on it or abort
+        ("terminate called without an active exception"). The motors are zero by now."""
+        stuck = self.stuck_thread
+        if stuck is not None and stuck.is_alive():
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(result.exit_code)
+        return result
 
     def _drive(self, policy: OnnxPolicy) -> RunResult:
         loop_cfg = self.config.loop
@@ -252,13 +330,8 @@ class Runtime:
         # The latch is tripped (or the loop ended by itself); give a tick in flight a moment.
         loop_thread.join(max(1.0, 3 * loop_cfg.period))
         if loop_thread.is_alive():
-            result = self._finish()
-            sys.stdout.flush()
-            sys.stderr.flush()
-            # The loop thread is stuck in native code and cannot be joined; the motors are at
-            # zero and everything is flushed, so leave without waiting for it.
-            os._exit(result.exit_code)
-        return self._finish()
+            self.stuck_thread = loop_thread  # stuck in native code, cannot be joined
+        return self.leave(self._finish())
 
     def _final_stop(self) -> None:
         if self.watchdog is not None:
@@ -280,7 +353,9 @@ class Runtime:
 
     def _finish(self) -> RunResult:
         if not self.latch.tripped:
-            self.latch.trip("loop ended", fault=False)
+            # Every orderly end trips the latch first (duration, signal, stop request): a loop
+            # that ended by itself is a bug, and a bug is a fault.
+            self.latch.trip("control loop ended without a stop")
         self._final_stop()
         fault = self.latch.fault
         exit_code = EXIT_SAFE_STOP if fault else EXIT_OK
@@ -309,7 +384,9 @@ class Runtime:
         if self.notifier is not None:
             self.notifier.stopping(f"stopping: {reason}")
         self.telemetry.event("end", **summary)
-        self.telemetry.close()
+        self.telemetry.close()  # bounded: a stalled reader costs records, not the exit
+        if self.telemetry.lost:
+            summary["telemetry_lost"] = self.telemetry.lost
         print_summary(summary, self.config.loop.rate_hz)
         return RunResult(exit_code, reason)
 
@@ -342,17 +419,18 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.suppress(ValueError, OSError, AttributeError):  # stderr without a file
         faulthandler.enable(file=sys.__stderr__)
     runtime = Runtime(args)
+    previous_hook = threading.excepthook
     try:
         return runtime.run().exit_code
     except Fault as fault:
         runtime.latch.trip(str(fault))
-        return runtime._finish().exit_code
+        return runtime.leave(runtime._finish()).exit_code
     except UsageError as exc:
         runtime.telemetry.event("end", reason=str(exc), exit_code=2, cmd=[0.0, 0.0])
         if runtime.recorder is not None:
             runtime.recorder.close({"reason": str(exc), "exit_code": 2, "cmd": [0.0, 0.0]})
         runtime.telemetry.close()
-        if runtime.stuck_thread is not None:
+        if runtime.stuck_thread is not None and runtime.stuck_thread.is_alive():
             # A warm-up stuck in native code makes the interpreter's shutdown abort (SIGABRT,
             # "terminate called without an active exception"): say it as the CLI would, leave.
             print(f"jetbot-rt run: error: {exc}", file=sys.stderr, flush=True)
@@ -363,4 +441,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"jetbot-rt run: unexpected error: {type(exc).__name__}: {first_line(exc)}",
               file=sys.stderr)
         runtime.latch.trip(f"unexpected error: {type(exc).__name__}: {first_line(exc)}")
-        return runtime._finish().exit_code
+        return runtime.leave(runtime._finish()).exit_code
+    finally:
+        threading.excepthook = previous_hook

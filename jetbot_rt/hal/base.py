@@ -26,6 +26,10 @@ class Camera(abc.ABC):
     def start(self) -> None:
         """Start capturing; raise ``UsageError`` with the device's own message if it cannot."""
 
+    def cancel_start(self) -> None:  # noqa: B027 - optional hook
+        """Make a ``start()`` in progress in another thread give up waiting and return (a
+        stop request during start-up). Safe to call at any time, from any thread."""
+
     @abc.abstractmethod
     def read(self) -> Frame | None:
         """The newest frame, without waiting; None if none has arrived yet."""

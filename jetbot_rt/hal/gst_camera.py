@@ -101,6 +101,7 @@ class GstCamera(Camera):
         self._lock = threading.Lock()
         self._frame: Frame | None = None
         self._first_frame = threading.Event()
+        self._cancelled = threading.Event()
         self._stderr: deque[str] = deque(maxlen=40)
         self._threads: list[threading.Thread] = []
         self.frames_received = 0
@@ -130,8 +131,14 @@ class GstCamera(Camera):
             thread.start()
         deadline = time.monotonic() + self.config.start_timeout
         while not self._first_frame.wait(0.02):
+            if self._cancelled.is_set():
+                self.stop()  # a stop request during start-up: no frame, no child left
+                return
             if self._process.poll() is not None or time.monotonic() > deadline:
                 self._fail_start()
+
+    def cancel_start(self) -> None:
+        self._cancelled.set()
 
     def read(self) -> Frame | None:
         with self._lock:

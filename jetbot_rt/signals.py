@@ -1,0 +1,121 @@
+"""Which signals end a run in the safe stop, and how a command installs its handlers.
+
+signal(7), every signal whose default action ends or stops the process, decided one by one:
+
+- **Caught, safe stop, orderly end** (exit 0, ``<NAME> received``): SIGINT, SIGTERM, SIGHUP,
+  SIGQUIT, SIGUSR1, SIGUSR2, SIGALRM, SIGVTALRM, SIGPROF, SIGIO, SIGPWR, SIGSTKFLT, SIGXCPU
+  (the CPU-time soft limit: the hard limit's SIGKILL follows), SIGTRAP and SIGSYS sent by
+  ``kill``, and every real-time signal SIGRTMIN..SIGRTMAX.
+- **Caught, safe stop, then suspended** (SIGTSTP: Ctrl-Z; SIGTTIN, SIGTTOU: a background job
+  touching the terminal): the motors go to zero first, then the process stops itself with
+  SIGSTOP as the shell expects. On SIGCONT (``fg``) **the run ends** (exit 0): a robot that
+  starts driving again by itself when someone types ``fg`` is a surprise; start it again.
+- **Left to Python**: SIGPIPE and SIGXFSZ, which CPython ignores so that the write fails
+  with an ``OSError`` instead (telemetry counts it as lost records and keeps driving).
+- **Not caught, by decision**: SIGABRT is systemd's ``WatchdogSignal`` for a process that is
+  wedged (Python no longer runs, so a Python handler would keep it alive); faulthandler dumps
+  every thread's stack and the process dies, then ``ExecStopPost`` turns the board off.
+  SIGSEGV, SIGBUS, SIGFPE, SIGILL are memory or CPU faults: the process state cannot be
+  trusted; faulthandler dumps the stacks, the process dies, ``ExecStopPost`` stops the board.
+- **Cannot be caught**: SIGKILL (``ExecStopPost``), SIGSTOP (the motors keep their duty while
+  the process is stopped; systemd's watchdog ends a stopped service, a manual run has nothing).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+from collections.abc import Callable, Iterator
+from typing import Any
+
+_TERMINATING_NAMES = (
+    "SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGVTALRM",
+    "SIGPROF", "SIGIO", "SIGPWR", "SIGSTKFLT", "SIGXCPU", "SIGTRAP", "SIGSYS",
+)
+_SUSPENDING_NAMES = ("SIGTSTP", "SIGTTIN", "SIGTTOU")
+
+
+def _present(names: tuple[str, ...]) -> list[int]:
+    found = []
+    for name in names:
+        number = getattr(signal, name, None)
+        if number is not None and int(number) not in found:  # SIGIO == SIGPOLL
+            found.append(int(number))
+    return found
+
+
+def _realtime() -> list[int]:
+    low, high = getattr(signal, "SIGRTMIN", None), getattr(signal, "SIGRTMAX", None)
+    return list(range(int(low), int(high) + 1)) if low and high else []
+
+
+TERMINATING: list[int] = _present(_TERMINATING_NAMES) + _realtime()
+"""Signals whose default action ends the process and that end a run in the safe stop."""
+SUSPENDING: list[int] = _present(_SUSPENDING_NAMES)
+"""Signals whose default action stops the process: safe stop, then suspend; the run ends."""
+HANDLED: list[int] = TERMINATING + SUSPENDING
+
+
+def name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        low = getattr(signal, "SIGRTMIN", 0)
+        return f"SIGRTMIN+{signum - low}" if low and signum >= low else f"signal {signum}"
+
+
+Handler = Callable[[int, Any], None]
+
+
+def install(handler: Handler) -> None:
+    """``handler`` for every signal in ``HANDLED`` (main thread only)."""
+    for signum in HANDLED:
+        with contextlib.suppress(OSError, ValueError, RuntimeError):  # not settable here
+            signal.signal(signum, handler)
+
+
+def suspend_self() -> None:
+    """Stop this process as the default SIGTSTP would (SIGSTOP cannot be caught)."""
+    import os
+
+    os.kill(os.getpid(), signal.SIGSTOP)
+
+
+class Interrupted(BaseException):
+    """Raised by ``raise_interrupted``: a signal arrived while nothing drives (start-up, a
+    command between two steps); the command ends in order."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(name(signum))
+        self.signum = signum
+
+
+_held: list[int] | None = None
+
+
+def raise_interrupted(signum: int, _frame: Any) -> None:
+    """The handler of commands that do not drive yet: raise ``Interrupted`` in the main
+    thread, unless inside ``deferred()``, which raises it when it ends."""
+    if _held is not None:
+        _held.append(signum)
+        return
+    raise Interrupted(signum)
+
+
+@contextlib.contextmanager
+def deferred(raise_after: bool = True) -> Iterator[None]:
+    """A stop in progress is never cut short by ``raise_interrupted``: a signal that arrives
+    inside the block is raised when it ends (``raise_after``), or absorbed. (Blocking with
+    ``pthread_sigmask`` would not do: another thread would take the signal and Python would
+    still run the handler.)"""
+    global _held
+    outer = _held
+    if outer is None:
+        _held = []
+    try:
+        yield
+    finally:
+        if outer is None:
+            pending, _held = _held, None
+            if pending and raise_after:
+                raise Interrupted(pending[0])

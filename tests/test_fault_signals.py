@@ -1,0 +1,221 @@
+"""Fault matrix, signals (issue 9, class 4): every catchable signal whose default action ends
+or stops the process ends a run in the safe stop first; a signal during start-up ends it in
+order (exit 0, one line, no traceback); Ctrl-Z zeroes the motors before the process stops
+and ends the run on SIGCONT; ``check --spin`` never leaves a wheel pulsing.
+
+The real CLI in a subprocess, the real backend: a ``videotestsrc`` camera and the
+register-level PCA9685 emulator, read back after the signal (docs/SAFETY.md, "Signals").
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+import uuid
+from pathlib import Path
+
+import policy_models
+import pytest
+from runner import RuntimeProcess, processes_with, wait_for
+from test_fault_matrix import (
+    MU,
+    assert_no_gst_left,
+    live_camera,
+    needs_gst,
+    real_config,
+    record_figures,
+)
+
+from jetbot_rt import signals
+
+pytestmark = needs_gst
+
+OFF_BOUND_S = 1.0
+"""Stated bound: signal sent -> every output of the emulated board reads off."""
+
+
+def start_driving(tmp_path: Path, mark: str, ticks: int = 10) -> RuntimeProcess:
+    policy = policy_models.constant(tmp_path / "policy.onnx", MU)
+    rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(live_camera(mark)))
+    rt.start()
+    rt.wait_ticks(ticks)
+    assert not rt.board_off(), "it was driving before the signal"
+    return rt
+
+
+def assert_clean_exit(rt: RuntimeProcess, code: int, reason: str, mark: str) -> list[dict]:
+    result = rt.finish(30)
+    assert result.returncode == code, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) <= 1, result.stderr
+    end = result.records[-1]
+    assert end["event"] == "end" and end["reason"].startswith(reason), end
+    assert end["cmd"] == [0.0, 0.0]
+    assert rt.board_off(), rt.chip.duties()
+    assert_no_gst_left(mark)
+    return result.records
+
+
+TERMINATING = [
+    # (signal, ticks driven before it): vary the moment as well as the signal
+    (signal.SIGQUIT, 5), (signal.SIGUSR1, 20), (signal.SIGUSR2, 5), (signal.SIGALRM, 12),
+    (signal.SIGVTALRM, 5), (signal.SIGPROF, 8), (signal.SIGXCPU, 5), (signal.SIGIO, 15),
+    (signal.SIGPWR, 5), (signal.SIGRTMIN, 5), (signal.SIGRTMAX, 9),
+]
+
+
+@pytest.mark.parametrize(("sig", "ticks"), TERMINATING,
+                         ids=[signals.name(s) for s, _ in TERMINATING])
+def test_terminating_signal_stops_the_motors_first(tmp_path: Path, sig: int,
+                                                   ticks: int) -> None:
+    mark = f"fs{uuid.uuid4().hex[:12]}"
+    rt = start_driving(tmp_path, mark, ticks)
+    try:
+        t0 = time.monotonic()
+        os.kill(rt.pid, sig)
+        t_off = wait_for(rt.board_off, OFF_BOUND_S)
+        assert t_off is not None, f"board still driving {OFF_BOUND_S} s after {sig}"
+        records = assert_clean_exit(rt, 0, f"{signals.name(sig)} received", mark)
+    finally:
+        rt.kill()
+    (stop,) = [r for r in records if r.get("event") == "safe_stop"]
+    assert stop["fault"] is False
+    record_figures(f"signal-{signals.name(sig)}-real", exit_code=0,
+                   inject_to_board_off_s=round(t_off - t0, 4))
+
+
+def process_state(pid: int) -> str:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTSTP, signal.SIGTTIN, signal.SIGTTOU],
+                         ids=["SIGTSTP", "SIGTTIN", "SIGTTOU"])
+def test_suspend_zeroes_the_motors_then_stops_and_the_run_ends_on_sigcont(
+        tmp_path: Path, sig: int) -> None:
+    """Decided: Ctrl-Z (or a background job touching the terminal) stops the motors, then
+    the process; ``fg`` (SIGCONT) ends the run (exit 0), it never drives again by itself."""
+    mark = f"fs{uuid.uuid4().hex[:12]}"
+    rt = start_driving(tmp_path, mark)
+    try:
+        t0 = time.monotonic()
+        os.kill(rt.pid, sig)
+        t_off = wait_for(rt.board_off, OFF_BOUND_S)
+        assert t_off is not None
+        assert wait_for(lambda: process_state(rt.pid) == "T", 5.0) is not None
+        time.sleep(0.3)  # suspended for a while: the board stays off
+        assert rt.board_off() and process_state(rt.pid) == "T"
+        os.kill(rt.pid, signal.SIGCONT)
+        records = assert_clean_exit(rt, 0, f"{signals.name(sig)} received", mark)
+    finally:
+        rt.kill()
+    stop = next(r for r in records if r.get("event") == "safe_stop")
+    assert not [r for r in records if "event" not in r and r["t"] > stop["t"]
+                and r["cmd"] != [0.0, 0.0]], "drove again after SIGCONT"
+    record_figures(f"suspend-{signals.name(sig)}-real", exit_code=0,
+                   inject_to_board_off_s=round(t_off - t0, 4))
+
+
+def handlers_installed(pid: int) -> bool:
+    """The CLI's own handlers are in place (SIGUSR1 caught): jetbot_rt code runs."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (signal.SIGUSR1 - 1) & 1)
+    return False
+
+
+@pytest.mark.parametrize(("sig", "delay"), [
+    (signal.SIGINT, 0.0), (signal.SIGINT, 0.15), (signal.SIGINT, 0.6),
+    (signal.SIGTERM, 0.05), (signal.SIGQUIT, 0.3),
+])
+def test_signal_during_start_up_ends_in_order(tmp_path: Path, sig: int, delay: float) -> None:
+    """From the moment jetbot_rt's code runs (its handlers show in /proc/PID/status), a
+    signal during the imports, the config, the model load or the camera start ends the run
+    with exit 0, one line, no traceback, nothing driven. (Before that, the interpreter's own
+    start-up is in charge: a few ms, docs/SAFETY.md.)"""
+    mark = f"fs{uuid.uuid4().hex[:12]}"
+    policy = policy_models.constant(tmp_path / "policy.onnx", MU)
+    rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(live_camera(mark)))
+    try:
+        rt.start()
+        assert wait_for(lambda: rt.process.poll() is not None or handlers_installed(rt.pid),
+                        30, interval=0.001) is not None
+        time.sleep(delay)
+        os.kill(rt.pid, sig)
+        result = rt.finish(30)
+    finally:
+        rt.kill()
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr and "KeyboardInterrupt" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) <= 1, result.stderr
+    assert not [r for r in result.records if "event" not in r], "it drove"
+    assert rt.board_off()
+    assert_no_gst_left(mark)
+
+
+# ---- check --spin and stop under signals ---------------------------------------------------
+
+
+def spin(tmp_path: Path) -> RuntimeProcess:
+    """``jetbot-rt check --spin`` on the emulated board (its own process, same environment)."""
+    policy = policy_models.constant(tmp_path / "policy.onnx", MU)
+    rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(live_camera("x")))
+    rt.args = ["check", "--spin", "--config", str(rt.config), "--frames", "2"]
+    return rt
+
+
+@pytest.mark.parametrize(("sig", "delay"), [
+    (signal.SIGQUIT, 0.1), (signal.SIGUSR1, 0.4), (signal.SIGTSTP, 0.2), (signal.SIGALRM, 0.8),
+    (signal.SIGINT, 0.3),
+])
+def test_check_spin_under_a_signal_leaves_the_wheels_off(tmp_path: Path, sig: int,
+                                                         delay: float) -> None:
+    rt = spin(tmp_path).start()
+    try:
+        assert wait_for(lambda: rt.process.poll() is not None or not rt.board_off(), 30,
+                        interval=0.002) is not None, "the pulse never started"
+        time.sleep(delay)
+        t0 = time.monotonic()
+        os.kill(rt.pid, sig)
+        t_off = wait_for(rt.board_off, OFF_BOUND_S)
+        assert t_off is not None
+        result = rt.finish(30)
+    finally:
+        rt.kill()
+    assert result.returncode == 1, result.stdout + result.stderr  # a self-test cut short
+    assert "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [f"jetbot-rt check: stopped by "
+                                                  f"{signals.name(sig)}"]
+    time.sleep(0.3)
+    assert rt.board_off(), "a wheel pulses after the check ended"
+    record_figures(f"spin-{signals.name(sig)}-real", exit_code=1,
+                   inject_to_board_off_s=round(t_off - t0, 4))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGQUIT, signal.SIGUSR2])
+def test_stop_command_under_a_signal_still_stops(tmp_path: Path, sig: int) -> None:
+    """``jetbot-rt stop`` absorbs a signal that arrives while it works: the stop it started is
+    written, and its exit code is the stop's own."""
+    mark = f"fs{uuid.uuid4().hex[:12]}"
+    rt = start_driving(tmp_path, mark)
+    try:
+        import subprocess
+
+        from runner import JETBOT_RT
+
+        stopper = subprocess.Popen([JETBOT_RT, "stop"], env=rt.env, stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True)
+        assert wait_for(lambda: stopper.poll() is not None or handlers_installed(stopper.pid),
+                        30, interval=0.001) is not None
+        for _ in range(3):  # a burst, as an impatient user's Ctrl-C would
+            if stopper.poll() is None:
+                stopper.send_signal(sig)
+            time.sleep(0.03)
+        out, err = stopper.communicate(timeout=30)
+        assert wait_for(rt.board_off, OFF_BOUND_S) is not None
+        assert_clean_exit(rt, 0, "jetbot-rt stop from pid", mark)
+    finally:
+        rt.kill()
+    assert stopper.returncode in (0,), out + err
+    assert "Traceback" not in err
+    assert not processes_with(f"{JETBOT_RT} stop")
