@@ -7,6 +7,7 @@ systemd runs after a crash) loads neither onnxruntime nor the camera code.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import sys
 
@@ -55,14 +56,14 @@ def main(argv: list[str] | None = None) -> int:
     # First: a signal during the imports, the config or the model load ends the command in
     # order (one line, exit 0), not with a KeyboardInterrupt traceback or a silent death.
     # ``jetbot-rt run`` replaces this with its safe-stop handlers before it opens the board.
-    signals.install(signals.raise_interrupted)
     command = next((a for a in (sys.argv[1:] if argv is None else argv)
                     if not a.startswith("-")), "")
+    holding = (signals.deferred(raise_after=False) if command in NEVER_INTERRUPTED
+               else contextlib.nullcontext())
     try:
-        if command in NEVER_INTERRUPTED:
-            with signals.deferred(raise_after=False):
-                return _main(argv)
-        return _main(argv)
+        with holding:
+            signals.install(signals.raise_interrupted)
+            return _main(argv)
     except signals.Interrupted as exc:
         print(f"jetbot-rt {command}: stopped by {exc}".replace("  ", " "), file=sys.stderr,
               flush=True)
