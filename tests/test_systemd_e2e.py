@@ -159,11 +159,8 @@ def test_hung_tick_stops_the_pings_then_safe_stop(tmp_path: Path):
     assert keys[-1].get("STOPPING") == "1"
     pings = listener.times_of("WATCHDOG")
     assert len(pings) >= 3, "it drove (and pinged) until the blackout at 1 s simulated time"
-    # Between the hang and STOPPING=1 the process lived on for the runtime's own watchdog
-    # timeout plus its 1 s wait for the hung loop thread: a ping every 0.1 s from anything
-    # but completed ticks would have filled that second.
-    stopping = listener.times_of("STOPPING")[0]
-    assert stopping - pings[-1] >= 0.5, (pings[-3:], stopping)
+    # That no ping comes from anything but a completed tick is counted, not timed, in
+    # TestWatchdogPingsComeFromCompletedTicks.
     records = read_telemetry(telemetry)
     [safe_stop] = [r for r in records if r.get("event") == "safe_stop"]
     assert "watchdog" in safe_stop["reason"] or "hung" in safe_stop["reason"], safe_stop
