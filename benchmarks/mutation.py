@@ -297,12 +297,13 @@ def main() -> int:
         # the unmutated tests must pass in the copies; their time sets the timeouts
         commands = {tuple(t) for m in args.modules for t in MODULES[m] if t}
         with concurrent.futures.ThreadPoolExecutor(args.jobs) as pool:
-            jobs = [pool.submit(baseline, copies[i % len(copies)], list(tests))
-                    for i, tests in enumerate(sorted(commands))]
-            durations = {tests: job.result() for tests, job in zip(sorted(commands), jobs)}
+            jobs = {tests: pool.submit(baseline, copies[i % len(copies)], list(tests))
+                    for i, tests in enumerate(sorted(commands))}
+            durations = {tests: job.result() for tests, job in jobs.items()}
         fast_worst = max(d for t, d in durations.items()
                          if any(list(t) == MODULES[m][0] for m in args.modules))
-        timeouts = {"fast": max(60.0, 3 * fast_worst), "slow": max(180.0, 3 * max(durations.values()))}
+        timeouts = {"fast": max(60.0, 3 * fast_worst),
+                    "slow": max(180.0, 3 * max(durations.values()))}
         print(f"baseline {sum(durations.values()):.0f} s, timeouts {timeouts}", flush=True)
 
         pending = [m for m in chosen if m.outcome == "pending"]
