@@ -27,6 +27,7 @@ MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")
 LAYOUTS = ("NHWC", "NCHW")
 COLOR_ORDERS = ("RGB", "BGR")
 PIXEL_RANGES = ("0-255", "0-1", "-1-1")
+FLOOR_TEXTURES = ("checker", "plain")
 
 
 def _check(predicate: Callable[[Any], bool], expected: str) -> dict[str, Any]:
@@ -44,6 +45,17 @@ def _one_of(choices: tuple[str, ...]) -> dict[str, Any]:
 def _camera_source_ok(value: str) -> bool:
     return value == "csi" or (value.startswith("usb:") and len(value) > 4) or (
         value.startswith("gst:") and len(value.strip()) > 4
+    )
+
+
+def _rgb() -> dict[str, Any]:
+    return _check(lambda v: len(v) == 3 and all(0 <= x <= 1 for x in v), "[r, g, b] in 0..1")
+
+
+def _range(low: float, high: float, unit: str = "") -> dict[str, Any]:
+    return _check(
+        lambda v: len(v) == 2 and low <= v[0] <= v[1] <= high,
+        f"[low, high] with {low} <= low <= high <= {high}{unit}",
     )
 
 
@@ -174,6 +186,76 @@ class SimConfig:
     the policy's size: closer to what the real camera's scaled frame shows, at about this
     factor squared times the render cost (docs/SIM.md, "The render-size seam")."""
     seed: int = 0
+    """Seeds the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
+    wheel_gain: list[float] = field(
+        default_factory=lambda: [1.0, 1.0],
+        metadata=_pair(lambda x: 0 < x <= 2, "two numbers in (0, 2]"),
+    )
+    """[left, right]: multiplies each wheel motor's speed and torque (a loose wheel, a worn
+    gearbox). The robot's own [actions] trim is the runtime's answer to it."""
+    deadband: float = field(default=0.0, metadata=_check(lambda v: 0 <= v < 1, "in [0, 1)"))
+    """Duty below which a wheel does not turn (gearbox friction); above it the speed is
+    motor_gain * (|duty| - deadband)."""
+    latency: float = field(default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1 s"))
+    """Seconds from a duty write to the motor acting on it (whole physics sub-steps)."""
+    camera_latency: float = field(
+        default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1 s")
+    )
+    """Seconds from the world's state to the frame that shows it (whole physics sub-steps)."""
+    stall_torque: float | None = field(default=None, metadata=_positive())
+    """N m per wheel at duty 1 and standstill: torque then scales with duty and falls with
+    speed, as a PWM-driven DC motor's. Default: the ideal motor, 0.15 N m at any duty."""
+    camera_pitch_deg: float = field(
+        default=20.0, metadata=_check(lambda v: -60 <= v <= 80, "-60..80 degrees")
+    )
+    """Camera tilt below the horizon."""
+    camera_height: float = field(
+        default=0.115, metadata=_check(lambda v: 0.04 <= v <= 0.5, "0.04..0.5 m")
+    )
+    """Height of the camera's optical centre above the floor."""
+    camera_vfov_deg: float = field(
+        default=52.0, metadata=_check(lambda v: 10 <= v <= 150, "10..150 degrees")
+    )
+    """Vertical field of view of the (pinhole) camera image."""
+    floor_color: list[float] = field(
+        default_factory=lambda: [0.69, 0.667, 0.627], metadata=_rgb()
+    )
+    """The floor's light tiles; dark tiles are this times 0.636."""
+    floor_texture: str = field(default="checker", metadata=_one_of(FLOOR_TEXTURES))
+    """"checker" (0.25 m tiles) or "plain" (every tile floor_color)."""
+    wall_color: list[float] | None = field(
+        default=None,
+        metadata=_check(
+            lambda v: len(v) in (3, 12) and all(0 <= x <= 1 for x in v),
+            "[r, g, b] or four of them in a row (12 numbers), in 0..1",
+        ),
+    )
+    """[r, g, b]: all four walls this colour; 12 numbers: the walls at +x, -x, +y, -y in
+    turn. Default: one colour each (blue +x, green -x, sand +y, lavender -y)."""
+    block_color: list[float] = field(default_factory=lambda: [0.9, 0.05, 0.05], metadata=_rgb())
+    """The goal block."""
+    light_direction: list[float] = field(
+        default_factory=lambda: [-50.0, 30.0, 100.0],
+        metadata=_check(
+            lambda v: len(v) == 3 and all(math.isfinite(x) for x in v) and any(v),
+            "three numbers, not all zero",
+        ),
+    )
+    """World-frame direction towards the light (PyBullet's default)."""
+    light_intensity: float = field(
+        default=1.0, metadata=_check(lambda v: 0 <= v <= 3, "0..3")
+    )
+    """Scales the renderer's ambient (0.6), diffuse (0.35) and specular (0.05) light."""
+    image_noise: float = field(default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1"))
+    """Standard deviation of Gaussian pixel noise, as a fraction of full scale (255)."""
+    image_blur: float = field(default=0.0, metadata=_check(lambda v: 0 <= v <= 0.1, "0..0.1"))
+    """Gaussian blur sigma as a fraction of the image width (0.005: 1.1 px at 224)."""
+    image_brightness: float = field(
+        default=0.0, metadata=_check(lambda v: -1 <= v <= 1, "-1..1")
+    )
+    """Added to every pixel, as a fraction of full scale."""
+    image_contrast: float = field(default=1.0, metadata=_check(lambda v: 0 <= v <= 3, "0..3"))
+    """Scales each pixel's distance from mid-grey."""
     camera_stall_after: float | None = field(default=None, metadata=_positive())
     """Fault injection: the camera delivers no new frame after this many simulated seconds."""
     blackout: list[float] | None = field(
@@ -181,6 +263,61 @@ class SimConfig:
         metadata=_check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] seconds"),
     )
     """Fault injection: frames are black between these simulated times (a covered lens)."""
+
+
+@dataclass
+class RandomizeConfig:
+    """Per-episode ranges for the [sim] knobs (docs/SIM.md, "Domain randomization"). A
+    "factor" range multiplies the [sim] value; the others are the value itself."""
+
+    enabled: bool | None = None
+    """On or off for every env and for `jetbot-rt run` (one draw from [sim] seed);
+    default: the task decides (forward: off), and `jetbot-rt run` is off."""
+    wheel_gain: list[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0.1, 2))
+    """Factor, drawn for each wheel apart."""
+    motor_gain: list[float] = field(default_factory=lambda: [0.9, 1.1], metadata=_range(0.1, 3))
+    """Factor on both wheels' speed (battery voltage, wheel size)."""
+    deadband: list[float] = field(default_factory=lambda: [0.0, 0.3], metadata=_range(0, 0.99))
+    """A task trains only with a max_speed above the top of this range."""
+    latency: list[float] = field(default_factory=lambda: [0.0, 0.1], metadata=_range(0, 1, " s"))
+    camera_latency: list[float] = field(
+        default_factory=lambda: [0.0, 0.1], metadata=_range(0, 1, " s")
+    )
+    stall_torque: list[float] | None = field(
+        default_factory=lambda: [0.05, 0.1], metadata=_range(0.001, 10, " N m")
+    )
+    """N m; none keeps [sim] stall_torque."""
+    camera_pitch_deg: list[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0, 3))
+    """Factor (duckietown: camera angle 0.8..1.2)."""
+    camera_height: list[float] = field(
+        default_factory=lambda: [0.92, 1.08], metadata=_range(0.35, 4.3)
+    )
+    """Factor (duckietown: 0.92..1.08)."""
+    camera_vfov_deg: list[float] = field(
+        default_factory=lambda: [0.8, 1.2], metadata=_range(0.2, 2.8)
+    )
+    """Factor (duckietown: camera_fov_y 0.8..1.2)."""
+    floor_color: list[float] = field(default_factory=lambda: [0.6, 1.4], metadata=_range(0, 5))
+    """Factor, drawn for each channel apart."""
+    wall_color: list[float] = field(default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5))
+    """Factor, drawn for each channel of each wall apart."""
+    block_color: list[float] = field(default_factory=lambda: [0.8, 1.1], metadata=_range(0, 5))
+    """Factor, drawn for each channel apart."""
+    light_elevation_deg: list[float] = field(
+        default_factory=lambda: [30.0, 90.0], metadata=_range(-90, 90)
+    )
+    """light_direction: this elevation above the floor, from any azimuth."""
+    light_intensity: list[float] = field(
+        default_factory=lambda: [0.7, 1.3], metadata=_range(0, 3)
+    )
+    image_noise: list[float] = field(default_factory=lambda: [0.0, 0.03], metadata=_range(0, 1))
+    image_blur: list[float] = field(default_factory=lambda: [0.0, 0.006], metadata=_range(0, 0.1))
+    image_brightness: list[float] = field(
+        default_factory=lambda: [-0.1, 0.1], metadata=_range(-1, 1)
+    )
+    image_contrast: list[float] = field(
+        default_factory=lambda: [0.8, 1.2], metadata=_range(0, 3)
+    )
 
 
 @dataclass
@@ -193,11 +330,16 @@ class Config:
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    randomize: RandomizeConfig = field(default_factory=RandomizeConfig)
 
 
 def _type_ok(value: Any, annotation: str) -> Any:
     """Coerce a TOML value to the field's declared type, or raise TypeError."""
     base = annotation.replace(" | None", "")
+    if base == "bool":
+        if not isinstance(value, bool):
+            raise TypeError("true or false")
+        return value
     if base == "float":
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise TypeError("a number")

@@ -16,6 +16,7 @@ import numpy as np
 
 from jetbot_rt.errors import Fault
 from jetbot_rt.hal.base import Backend, Camera, Drive, Frame
+from jetbot_rt.sim.randomize import sample
 from jetbot_rt.sim.world import JetbotWorld
 
 if TYPE_CHECKING:
@@ -49,7 +50,7 @@ class SimCamera(Camera):
         if self._blackout is not None and self._blackout[0] <= t <= self._blackout[1]:
             image = np.zeros((self._world.image_size[1], self._world.image_size[0], 3), np.uint8)
         else:
-            image = self._world.render()
+            image = self._world.frame()
         self._count += 1
         self._frame = Frame(image, time.monotonic(), self._count)
 
@@ -76,8 +77,12 @@ class SimDrive(Drive):
 
 
 def build_backend(config: Config, options: BackendOptions) -> Backend:
-    """The world in its seed scene, rendering at the policy's frame size (224x224 default)."""
+    """The world in its seed scene, rendering at the policy's frame size (224x224 default).
+    With ``[randomize] enabled = true`` the [sim] knobs are drawn once, seeded by [sim] seed."""
     world = JetbotWorld(config.sim, gui=options.gui, image_size=tuple(options.frame_size))
+    if config.randomize.enabled:
+        rng = np.random.default_rng(config.sim.seed)
+        world.reset(sim=sample(config.sim, config.randomize, rng))
     camera = SimCamera(world, config.sim)
     drive = SimDrive(world)
 

@@ -1,8 +1,14 @@
 """The simulated JetBot in its room: one PyBullet client per world, a modelled motor board,
-and the robot's camera rendered with PyBullet's software renderer (headless, deterministic)."""
+and the robot's camera rendered with PyBullet's software renderer (headless, deterministic).
+
+The real robot's imperfections (``[sim]`` keys, ideal by default) live in their own modules:
+the motors in ``motor.py``, the camera's mount, latency and sensor in ``camera_model.py``, the
+scene's colours and light in ``appearance.py``.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
@@ -13,6 +19,9 @@ import cv2
 import numpy as np
 
 from jetbot_rt.errors import UsageError
+from jetbot_rt.sim import appearance
+from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
+from jetbot_rt.sim.motor import WheelMotors
 from jetbot_rt.sim.quiet import import_pybullet
 
 p = import_pybullet()
@@ -24,18 +33,6 @@ ASSETS = resources.files("jetbot_rt.sim") / "assets"
 
 WHEEL_RADIUS = 0.03
 """m; also the spawn height of base_link (the axle midpoint)."""
-WHEEL_MAX_TORQUE = 0.15
-"""N m per wheel: the velocity motor's force limit, about a small 1:48 gear motor's stall
-torque at 5 V. Traction (friction 1 on 0.7 kg) stays the tighter limit for hard accelerations."""
-CAMERA_VFOV_DEG = 52.0
-"""Vertical field of view of the camera image; derived in docs/SIM.md from the IMX219
-160-deg lens in its 1280x720 (2x2 binned) mode."""
-CAMERA_ASPECT = 16 / 9
-"""Width/height of the field of view. The real pipeline scales the whole 1280x720 capture to
-the policy's size without cropping (hal/gst_camera.py, as NVIDIA's jetbot scales 816x616 to
-224x224), so a 224x224 frame holds a 16:9 view squeezed sideways; rendering with this aspect
-into the requested image size squeezes it the same way. Horizontal FOV: 2 atan(16/9 tan 26°)
-= 82 deg."""
 CAMERA_NEAR = 0.01
 CAMERA_FAR = 5.0
 """m; the room's diagonal is 4.2 m."""
@@ -49,7 +46,6 @@ at whatever size the policy's ONNX input declares."""
 
 LEFT, RIGHT, CAMERA_LINK = 0, 1, 3  # joint/link indices in jetbot.urdf's order
 _WHEELS = (LEFT, RIGHT)
-_WHEEL_FORCES = (WHEEL_MAX_TORQUE, WHEEL_MAX_TORQUE)
 
 
 def pixel_centred(projection: tuple[float, ...], size: tuple[int, int]) -> list[float]:
@@ -102,10 +98,6 @@ class JetbotWorld:
         self._client = p.connect(p.GUI if gui else p.DIRECT)
         if self._client < 0:
             raise UsageError("cannot open a PyBullet " + ("window" if gui else "client"))
-        self._projection = pixel_centred(p.computeProjectionMatrixFOV(
-            CAMERA_VFOV_DEG, CAMERA_ASPECT, CAMERA_NEAR, CAMERA_FAR,
-            physicsClientId=self._client,
-        ), self._render_size)
         self._gui = gui
         if gui:
             p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=self._client)
@@ -113,7 +105,6 @@ class JetbotWorld:
                 1.6, 0.0, -45.0, (-0.2, 0.0, 0.0), physicsClientId=self._client
             )
         self._duty = (0.0, 0.0)
-        self._wheel_cmd = [0.0, 0.0]  # rad/s, the lagged motor velocity targets
         self._steps = 0
         self._requested_time = 0.0
         self.reset()
@@ -122,13 +113,20 @@ class JetbotWorld:
         self,
         robot_pose: tuple[float, float, float] = (-0.6, 0.0, 0.0),
         block_xy: tuple[float, float] = (0.3, 0.0),
+        sim: SimConfig | None = None,
     ) -> None:
         """Place the robot (x, y, yaw) and the block; motors at rest, ``sim_time`` = 0.
+        ``sim``: new ``[sim]`` settings from this episode on (the domain randomization's
+        draw); the physics rate, the image size and supersample stay the world's own.
 
         The scene is rebuilt from its URDFs (a few ms): PyBullet keeps contact and
         overlapping-pair caches that moving the bodies back does not clear, and only a
         rebuilt world replays bit for bit like a new one.
         """
+        if sim is not None:
+            self._sim = dataclasses.replace(
+                sim, physics_hz=self._sim.physics_hz, supersample=self._sim.supersample
+            )
         c = self._client
         if self._gui:  # no half-built scene on screen
             p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 0, physicsClientId=c)
@@ -136,7 +134,7 @@ class JetbotWorld:
         p.setGravity(0, 0, GRAVITY, physicsClientId=c)
         p.setTimeStep(self._dt_physics, physicsClientId=c)
         p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=c)
-        p.loadURDF(_asset("room.urdf"), useFixedBase=True, physicsClientId=c)
+        room = p.loadURDF(_asset("room.urdf"), useFixedBase=True, physicsClientId=c)
         x, y, yaw = robot_pose
         self._robot = p.loadURDF(
             _asset("jetbot.urdf"), (x, y, WHEEL_RADIUS), p.getQuaternionFromEuler((0, 0, yaw)),
@@ -145,6 +143,7 @@ class JetbotWorld:
         self._block = p.loadURDF(
             _asset("block.urdf"), (block_xy[0], block_xy[1], BLOCK_HALF_SIZE), physicsClientId=c
         )
+        appearance.apply_colors(c, room, self._block, self._sim)
         info = p.getDynamicsInfo(self._robot, -1, physicsClientId=c)
         self._com_to_link = p.invertTransform(info[3], info[4], physicsClientId=c)
         # Free-wheeling until the first step: PyBullet's default joint motor would brake.
@@ -154,16 +153,28 @@ class JetbotWorld:
         if self._gui:
             p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 1, physicsClientId=c)
         self._duty = (0.0, 0.0)
-        self._wheel_cmd = [0.0, 0.0]
         self._steps = 0
         self._requested_time = 0.0
+        self._motors = WheelMotors(self._sim)
+        self._effects = SensorEffects(self._sim)
+        self._frames = FrameQueue(round(self._sim.camera_latency * self._sim.physics_hz))
+        self._delivered: tuple[int, np.ndarray] | None = None
+        self._projection = pixel_centred(p.computeProjectionMatrixFOV(
+            self._sim.camera_vfov_deg, CAMERA_ASPECT, CAMERA_NEAR, CAMERA_FAR,
+            physicsClientId=c,
+        ), self._render_size)
+        self._light = appearance.light_kwargs(self._sim)
+        self._mount = mount_delta(self._sim)
+        if self._frames.delay:
+            self._frames.put(0, self.render())
 
     def set_duty(self, left: float, right: float) -> None:
         """Duties in [-1, 1] as the motor board gets them (clipped like a PWM output);
-        applied from the next ``step``."""
+        the motors act on them from the next ``step`` (after ``[sim] latency``)."""
         if not (math.isfinite(left) and math.isfinite(right)):
             raise ValueError(f"non-finite duty ({left}, {right})")
         self._duty = (min(max(float(left), -1.0), 1.0), min(max(float(right), -1.0), 1.0))
+        self._motors.command(self._steps, *self._duty)
 
     def step(self, dt: float) -> None:
         """Advance by ``dt`` seconds in fixed physics sub-steps of 1/physics_hz.
@@ -178,30 +189,31 @@ class JetbotWorld:
         if n <= 0:
             return
         c = self._client
-        gain, tau = self._sim.motor_gain, self._sim.motor_tau
-        target_l, target_r = gain * self._duty[0], gain * self._duty[1]
-        # exact discretisation of d(omega)/dt = (target - omega) / tau over one sub-step
-        blend = 1.0 if tau == 0 else -math.expm1(-self._dt_physics / tau)
-        omega_l, omega_r = self._wheel_cmd
+        captures = self._frames.captures(self._steps, self._steps + n)
         for _ in range(n):
-            omega_l += blend * (target_l - omega_l)
-            omega_r += blend * (target_r - omega_r)
+            measured = self.wheel_velocities() if self._motors.needs_wheel_speed else None
+            targets, forces = self._motors.substep(self._steps, measured)
             p.setJointMotorControlArray(
                 self._robot, _WHEELS, p.VELOCITY_CONTROL,
-                targetVelocities=(omega_l, omega_r), forces=_WHEEL_FORCES, physicsClientId=c,
+                targetVelocities=targets, forces=forces, physicsClientId=c,
             )
             p.stepSimulation(physicsClientId=c)
-        self._wheel_cmd = [omega_l, omega_r]
-        self._steps += n
+            self._steps += 1
+            if captures and captures[0] == self._steps:
+                self._frames.put(captures.pop(0), self.render())
 
     def render(self) -> np.ndarray:
-        """The robot camera's view: (height, width, 3) uint8 RGB."""
+        """The robot camera's view of the world as it is now, before the camera's latency and
+        sensor effects (``frame()`` applies them): (height, width, 3) uint8 RGB."""
         c = self._client
         state = p.getLinkState(
             self._robot, CAMERA_LINK, computeForwardKinematics=True, physicsClientId=c
         )
         eye = np.array(state[4])
         rotation = np.array(p.getMatrixFromQuaternion(state[5])).reshape(3, 3)
+        if self._mount is not None:  # the mount as configured, relative to the URDF's
+            eye = eye + rotation @ self._mount[0]
+            rotation = rotation @ self._mount[1]
         view = p.computeViewMatrix(
             eye.tolist(), (eye + rotation[:, 0]).tolist(), rotation[:, 2].tolist(),
             physicsClientId=c,
@@ -210,12 +222,23 @@ class JetbotWorld:
         _, _, rgba, _, _ = p.getCameraImage(
             width, height, view, self._projection,
             shadow=0, renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
-            physicsClientId=c,
+            physicsClientId=c, **self._light,
         )
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3]
         if self._sim.supersample > 1:
             return cv2.resize(rgb, (self._width, self._height), interpolation=cv2.INTER_AREA)
         return np.ascontiguousarray(rgb)
+
+    def frame(self) -> np.ndarray:
+        """The frame the camera delivers now: the world ``[sim] camera_latency`` ago, with the
+        sensor's blur, contrast, brightness and noise. At the ideal defaults, ``render()``.
+        Asked twice at the same ``sim_time``, the same frame."""
+        if self._delivered is not None and self._delivered[0] == self._steps:
+            return self._delivered[1]
+        raw = self._frames.frame_at(self._steps) if self._frames.delay else None
+        image = self._effects.apply(raw if raw is not None else self.render())
+        self._delivered = (self._steps, image)
+        return image
 
     def _robot_frame(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """base_link's frame in the world. PyBullet reports a base's centre of mass, which
@@ -251,8 +274,13 @@ class JetbotWorld:
 
     @property
     def duty(self) -> tuple[float, float]:
-        """The duties the next ``step`` applies."""
+        """The duties last written (the motors act on them after ``[sim] latency``)."""
         return self._duty
+
+    @property
+    def sim(self) -> SimConfig:
+        """The ``[sim]`` settings of the current episode."""
+        return self._sim
 
     @property
     def sim_time(self) -> float:

@@ -8,6 +8,7 @@ rendered after that step is the next observation. ``reset`` renders the first fr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -17,7 +18,7 @@ import numpy as np
 from gymnasium import spaces
 
 from jetbot_rt.actions import ActionPipeline, resolve_max_speed
-from jetbot_rt.config import Config
+from jetbot_rt.config import Config, SimConfig
 from jetbot_rt.errors import UsageError
 
 POLICY_IMAGE_SIZE = 64
@@ -41,6 +42,8 @@ class Task:
     """m; uniform +- noise on the start x and y (seeded by ``reset(seed=...)``)."""
     start_yaw_noise: float
     """rad; uniform +- noise on the start yaw."""
+    randomize: bool = False
+    """Domain randomization ([randomize] ranges) unless the env or the config says otherwise."""
 
 
 TASKS: dict[str, Task] = {
@@ -87,7 +90,9 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
     Action: ``[left, right]`` in [-1, 1].
 
     ``model_max_speed`` is the policy's metadata value, used (as by the runtime) when the
-    config sets none. ``reset(options={"start_noise": False})`` starts exactly at the task's
+    config sets none. ``randomize``: draw the ``[sim]`` knobs from ``[randomize]`` at each
+    reset (default: ``[randomize] enabled``, else the task's choice); the draw is in the reset's
+    ``info["sim_params"]``. ``reset(options={"start_noise": False})`` starts exactly at the task's
     nominal pose,
     ``options={"robot_pose": (x, y, yaw)}`` at a given one.
     """
@@ -103,6 +108,7 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         start_noise: bool = True,
         model_max_speed: float | None = None,
         image_size: tuple[int, int] = (POLICY_IMAGE_SIZE, POLICY_IMAGE_SIZE),
+        randomize: bool | None = None,
     ) -> None:
         from jetbot_rt.sim.world import JetbotWorld  # pybullet: only when an env is built
 
@@ -113,6 +119,16 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.render_mode = render_mode
         self.start_noise = start_noise
         self.pipeline = action_pipeline_of(self.config, model_max_speed)
+        if randomize is None:
+            randomize = self.config.randomize.enabled
+        self.randomize = self.task.randomize if randomize is None else randomize
+        top = self.config.randomize.deadband[1]
+        if self.randomize and top >= self.pipeline.max_speed:
+            raise UsageError(
+                f"max_speed {self.pipeline.max_speed:g} must lie above the dead-band it trains "
+                f"with: [randomize] deadband reaches {top:g} (raise [actions] max_speed or "
+                "lower the range)"
+            )
         self.period = self.config.loop.period
         self.metadata = {**self.metadata, "render_fps": self.config.loop.rate_hz}
         width, height = (int(v) for v in image_size)
@@ -121,6 +137,8 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.world = JetbotWorld(self.config.sim, image_size=(width, height))
         self._frame = np.zeros(self.observation_space.shape, dtype=np.uint8)
         self._steps = 0
+        self.sim_params: dict[str, Any] = {}
+        """The last reset's [sim] knobs (``randomize.DRAWN``), as in its ``info``."""
 
     def _start_pose(self, options: dict[str, Any]) -> tuple[float, float, float]:
         if "robot_pose" in options:
@@ -154,14 +172,31 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
             "sim_time": self.world.sim_time,
         }
 
+    def _episode_sim(self) -> SimConfig:
+        """This episode's [sim]: a draw from [randomize], or the config's (with a fresh noise
+        seed when the camera is noisy); drawn after the start pose, so randomization leaves
+        the start poses of a seed as they are."""
+        from jetbot_rt.sim.randomize import sample  # pybullet: only when an env is built
+
+        sim = self.config.sim
+        if self.randomize:
+            return sample(sim, self.config.randomize, self.np_random)
+        if sim.image_noise > 0:
+            return dataclasses.replace(sim, seed=int(self.np_random.integers(2**31)))
+        return sim
+
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
+        from jetbot_rt.sim.randomize import params as sim_params
+
         super().reset(seed=seed)
-        self.world.reset(robot_pose=self._start_pose(options or {}), block_xy=self.task.block_xy)
+        pose = self._start_pose(options or {})
+        self.world.reset(robot_pose=pose, block_xy=self.task.block_xy, sim=self._episode_sim())
+        self.sim_params = sim_params(self.world.sim)
         self._steps = 0
-        self._frame = self.world.render()
-        return self._frame, self._info((0.0, 0.0))
+        self._frame = self.world.frame()
+        return self._frame, {**self._info((0.0, 0.0)), "sim_params": self.sim_params}
 
     def step(
         self, action: np.ndarray
@@ -170,7 +205,7 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.world.set_duty(*duties)
         self.world.step(self.period)
         self._steps += 1
-        self._frame = self.world.render()
+        self._frame = self.world.frame()
         info = self._info(duties)
         reward = forward_reward(info["distance"])
         truncated = self._steps >= self.task.episode_steps

@@ -1,0 +1,111 @@
+"""Domain randomization: one draw of the ``[sim]`` knobs per episode from ``[randomize]``'s
+ranges, with the caller's seeded generator (the env's ``np_random``), so ``reset(seed=...)``
+reproduces the episode, parameters and pixels alike.
+
+The draw is a complete ``SimConfig``: ``sim_toml(sim)`` writes it as a ``[sim]`` table that
+``jetbot-rt run --backend sim --config`` and ``jetbot-train eval --config`` replay.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from jetbot_rt.config import RandomizeConfig, SimConfig, set_value
+from jetbot_rt.errors import UsageError
+from jetbot_rt.sim.appearance import wall_colors
+
+DRAWN = (
+    "wheel_gain", "motor_gain", "deadband", "latency", "camera_latency", "stall_torque",
+    "camera_pitch_deg", "camera_height", "camera_vfov_deg", "floor_color", "wall_color",
+    "block_color", "light_direction", "light_intensity", "image_noise", "image_blur",
+    "image_brightness", "image_contrast", "seed",
+)
+"""The [sim] keys a draw sets (``seed`` seeds the episode's image noise)."""
+
+
+def _uniform(rng: np.random.Generator, bounds: list[float], size: int | None = None) -> Any:
+    low, high = bounds
+    return rng.uniform(low, high, size)
+
+
+def _r(value: float) -> float:
+    """A plain float, rounded to 6 digits so that a report or a TOML file reads well."""
+    return round(float(value), 6)
+
+
+def _color(rng: np.random.Generator, base: list[float], factor: list[float]) -> list[float]:
+    factors = _uniform(rng, factor, 3)
+    return [_r(min(max(c * f, 0.0), 1.0)) for c, f in zip(base, factors, strict=True)]
+
+
+def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -> SimConfig:
+    """``base`` with every randomized knob drawn from ``ranges`` (always in the same order:
+    the draw depends on the generator's state only)."""
+    r = ranges
+    gains = _uniform(rng, r.wheel_gain, 2)
+    azimuth = rng.uniform(-math.pi, math.pi)
+    elevation = math.radians(_uniform(rng, r.light_elevation_deg))
+    stall = _uniform(rng, r.stall_torque) if r.stall_torque is not None else None
+    walls = [c for rgb in wall_colors(base) for c in _color(rng, list(rgb), r.wall_color)]
+    drawn: dict[str, Any] = {
+        "wheel_gain": [_r(min(base.wheel_gain[i] * gains[i], 2.0)) for i in (0, 1)],
+        "motor_gain": _r(base.motor_gain * _uniform(rng, r.motor_gain)),
+        "deadband": _r(_uniform(rng, r.deadband)),
+        "latency": _r(_uniform(rng, r.latency)),
+        "camera_latency": _r(_uniform(rng, r.camera_latency)),
+        "stall_torque": _r(stall) if stall is not None else base.stall_torque,
+        "camera_pitch_deg": _r(base.camera_pitch_deg * _uniform(rng, r.camera_pitch_deg)),
+        "camera_height": _r(base.camera_height * _uniform(rng, r.camera_height)),
+        "camera_vfov_deg": _r(base.camera_vfov_deg * _uniform(rng, r.camera_vfov_deg)),
+        "floor_color": _color(rng, base.floor_color, r.floor_color),
+        "wall_color": walls,
+        "block_color": _color(rng, base.block_color, r.block_color),
+        "light_direction": [
+            _r(math.cos(elevation) * math.cos(azimuth)),
+            _r(math.cos(elevation) * math.sin(azimuth)),
+            _r(math.sin(elevation)),
+        ],
+        "light_intensity": _r(_uniform(rng, r.light_intensity)),
+        "image_noise": _r(_uniform(rng, r.image_noise)),
+        "image_blur": _r(_uniform(rng, r.image_blur)),
+        "image_brightness": _r(_uniform(rng, r.image_brightness)),
+        "image_contrast": _r(_uniform(rng, r.image_contrast)),
+        "seed": int(rng.integers(2**31)),
+    }
+    out = dataclasses.replace(base)
+    for key, value in drawn.items():  # a draw must be a valid [sim] table (replayable)
+        try:
+            set_value(out, "sim", key, value)
+        except UsageError as exc:
+            raise UsageError(f"[randomize] drew an invalid value: {exc}") from None
+    return out
+
+
+def params(sim: SimConfig) -> dict[str, Any]:
+    """The randomized knobs of ``sim`` as plain values (for ``info`` and reports)."""
+    out = {key: getattr(sim, key) for key in DRAWN}
+    return {k: list(v) if isinstance(v, list) else v for k, v in out.items()}
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def sim_toml(sim: SimConfig) -> str:
+    """A ``[sim]`` TOML table holding every set key of ``sim`` (a draw, replayable)."""
+    lines = ["[sim]"]
+    for f in dataclasses.fields(sim):
+        value = getattr(sim, f.name)
+        if value is not None:
+            lines.append(f"{f.name} = {_toml_value(value)}")
+    return "\n".join(lines) + "\n"
