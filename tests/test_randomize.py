@@ -1,0 +1,103 @@
+"""Domain randomization: per-episode draws of the [sim] knobs from the env's seeded RNG."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jetbot_rt.config import from_dict
+from jetbot_rt.errors import UsageError
+
+pytest.importorskip("pybullet")
+
+from jetbot_rt.sim.randomize import DRAWN, sample, sim_toml
+from jetbot_rt.train.env import JetbotEnv
+
+CONFIG = {"actions": {"max_speed": 0.4}}  # above the default dead-band range (0..0.3)
+
+
+@pytest.fixture(scope="module")
+def env():
+    environment = JetbotEnv("forward", from_dict(CONFIG), randomize=True)
+    yield environment
+    environment.close()
+
+
+def episode(env: JetbotEnv, seed: int, steps: int = 4):
+    obs, info = env.reset(seed=seed)
+    frames = [obs] + [env.step(np.array([0.8, 0.5]))[0] for _ in range(steps)]
+    return info, np.array(frames), env.world.robot_pose()
+
+
+def test_same_seed_same_draw_and_frames_different_seed_different(env):
+    info_a, frames_a, pose_a = episode(env, 7)
+    episode(env, 8)  # the env's state in between does not leak into the next seeded episode
+    info_b, frames_b, pose_b = episode(env, 7)
+    assert info_a["sim_params"] == info_b["sim_params"] == env.sim_params
+    info_c, frames_c, _ = episode(env, 9)
+    assert set(info_a["sim_params"]) == set(DRAWN)
+    assert np.array_equal(frames_a, frames_b) and pose_a == pose_b
+    differ = [k for k in DRAWN if info_a["sim_params"][k] != info_c["sim_params"][k]]
+    assert len(differ) == len(DRAWN)  # every knob is drawn again
+    assert not np.array_equal(frames_a[0], frames_c[0])
+
+
+def test_draws_lie_in_their_ranges_and_cover_them():
+    config = from_dict(CONFIG)
+    rng = np.random.default_rng(0)
+    draws = [sample(config.sim, config.randomize, rng) for _ in range(300)]
+    gains = np.array([d.wheel_gain for d in draws])
+    assert gains.min() >= 0.8 and gains.max() <= 1.2
+    assert gains.min() < 0.82 and gains.max() > 1.18  # each wheel apart, over the range
+    assert np.corrcoef(gains.T)[0, 1] < 0.3
+    for key in ("latency", "camera_latency", "deadband"):
+        values = np.array([getattr(d, key) for d in draws])
+        low, high = getattr(config.randomize, key)
+        assert low <= values.min() < low + 0.05 * (high - low)
+        assert high - 0.05 * (high - low) < values.max() <= high
+    pitch = np.array([d.camera_pitch_deg for d in draws])
+    assert 16.0 <= pitch.min() < 16.5 and 23.5 < pitch.max() <= 24.0  # 20 deg * (0.8..1.2)
+    assert all(d.block_color[0] > 3 * max(d.block_color[1:]) for d in draws)  # still red
+
+
+def test_a_draw_replays_as_a_sim_table():
+    config = from_dict(CONFIG)
+    draw = sample(config.sim, config.randomize, np.random.default_rng(3))
+    import tomllib
+
+    assert from_dict(tomllib.loads(sim_toml(draw))).sim == draw
+
+
+def test_randomization_is_off_unless_asked_and_keeps_the_start_poses():
+    plain = JetbotEnv("forward")
+    try:
+        _, info = plain.reset(seed=5)
+        assert not plain.randomize
+        assert info["sim_params"]["wheel_gain"] == [1.0, 1.0]
+        assert info["sim_params"]["latency"] == 0.0
+        start = plain.world.robot_pose()
+    finally:
+        plain.close()
+    randomized = JetbotEnv("forward", from_dict({**CONFIG, "randomize": {"enabled": True}}))
+    try:
+        assert randomized.randomize
+        randomized.reset(seed=5)
+        assert randomized.world.robot_pose() == pytest.approx(start, abs=1e-9)
+    finally:
+        randomized.close()
+
+
+def test_max_speed_must_lie_above_the_deadband_it_trains_with():
+    with pytest.raises(UsageError, match="deadband"):
+        JetbotEnv("forward", randomize=True)  # max_speed 0.1, dead-band up to 0.3
+    narrow = from_dict({"randomize": {"deadband": [0.0, 0.05]}})
+    JetbotEnv("forward", narrow, randomize=True).close()
+
+
+def test_the_default_config_file_shows_the_defaults():
+    from importlib import resources
+
+    from jetbot_rt.config import Config, load_config
+
+    shipped = load_config(str(resources.files("jetbot_rt") / "data" / "default-config.toml"))
+    assert shipped.sim == Config().sim and shipped.randomize == Config().randomize
