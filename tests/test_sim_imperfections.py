@@ -14,7 +14,7 @@ from jetbot_rt.config import SimConfig
 
 pytest.importorskip("pybullet")
 
-from jetbot_rt.sim.world import JetbotWorld
+from jetbot_rt.sim.world import JetbotWorld, pixel_centred
 
 TICK = 1 / 30
 SUBSTEP = 1 / 240
@@ -243,7 +243,8 @@ def test_defaults_render_like_the_urdf_scene():
         eye = np.array(state[4])
         view = p.computeViewMatrix(eye.tolist(), (eye + rotation[:, 0]).tolist(),
                                    rotation[:, 2].tolist(), physicsClientId=c)
-        projection = p.computeProjectionMatrixFOV(52.0, 16 / 9, 0.01, 5.0, physicsClientId=c)
+        projection = pixel_centred(
+            p.computeProjectionMatrixFOV(52.0, 16 / 9, 0.01, 5.0, physicsClientId=c), SIZE)
         rgba = p.getCameraImage(*SIZE, view, projection, shadow=0,
                                 renderer=p.ER_TINY_RENDERER, physicsClientId=c)[2]
         plain = np.asarray(rgba, np.uint8).reshape(SIZE[1], SIZE[0], 4)[:, :, :3]
