@@ -152,6 +152,7 @@ def print_table(rows: list[Row]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    config.validate()
     if args.frames < 2:
         raise UsageError(f"--frames must be at least 2, got {args.frames}")
     rows = [_row("motor board", lambda: check_motor_board(config))]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import shlex
 import stat
 import sys
 from collections.abc import Callable
@@ -24,6 +25,10 @@ else:  # pragma: no cover - Python 3.10 (JetPack 6) path
 from jetbot_rt.errors import UsageError
 
 MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")
+DEFAULT_FRAME_AGE_S = 0.15
+DEFAULT_WATCHDOG_MIN_S = 0.1
+FRAME_AGE_INTERVALS = 1.5
+"""A frame-age limit below 1.5 frame intervals refuses good frames on ordinary jitter."""
 LAYOUTS = ("NHWC", "NCHW")
 COLOR_ORDERS = ("RGB", "BGR")
 PIXEL_RANGES = ("0-255", "0-1", "-1-1")
@@ -34,8 +39,11 @@ def _check(predicate: Callable[[Any], bool], expected: str) -> dict[str, Any]:
     return {"check": predicate, "expected": expected}
 
 
-def _positive() -> dict[str, Any]:
-    return _check(lambda v: v > 0 and math.isfinite(v), "a number > 0")
+def _within(low: float, high: float, unit: str = "") -> dict[str, Any]:
+    """A finite number in [low, high]: every duration and rate is bounded, so nothing
+    downstream sees 1e-10 Hz or a 1e10 s timeout (a thread's wait overflows on those)."""
+    return _check(lambda v: math.isfinite(v) and low <= v <= high,
+                  f"a number in [{low:g}, {high:g}]{unit}")
 
 
 def _one_of(choices: tuple[str, ...]) -> dict[str, Any]:
@@ -43,9 +51,14 @@ def _one_of(choices: tuple[str, ...]) -> dict[str, Any]:
 
 
 def _camera_source_ok(value: str) -> bool:
-    return value == "csi" or (value.startswith("usb:") and len(value) > 4) or (
-        value.startswith("gst:") and len(value.strip()) > 4
-    )
+    if value.startswith("gst:") and len(value.strip()) > 4:
+        try:
+            shlex.split(value[4:])  # as the camera will split it for gst-launch
+        except ValueError as exc:  # "No closing quotation", "No escaped character"
+            raise ValueError(f"a GStreamer pipeline gst-launch can parse ({exc}), "
+                             f"got {value!r}") from None
+        return True
+    return value == "csi" or (value.startswith("usb:") and len(value) > 4)
 
 
 def _rgb() -> dict[str, Any]:
@@ -65,14 +78,16 @@ def _pair(predicate: Callable[[float], bool], expected: str) -> dict[str, Any]:
 
 @dataclass
 class LoopConfig:
-    rate_hz: float = field(default=30.0, metadata=_positive())
+    rate_hz: float = field(default=30.0, metadata=_within(1.0, 100.0, " Hz"))
     """Control rate; ticks sit on absolute monotonic deadlines 1/rate_hz apart."""
-    max_frame_age: float = field(default=0.15, metadata=_positive())
-    """Seconds; a frame older than this at the start of a tick is refused (a fault)."""
-    watchdog_timeout: float | None = field(default=None, metadata=_positive())
+    max_frame_age: float | None = field(default=None, metadata=_within(0.005, 10.0, " s"))
+    """Seconds; a frame older than this at the start of a tick is refused (a fault).
+    Default: 0.15 s, or 1.5 frame intervals where frames come slower (1.5 periods: the sim
+    renders once per tick; 1.5 / [camera] fps: the camera); at least that if set."""
+    watchdog_timeout: float | None = field(default=None, metadata=_within(0.01, 10.0, " s"))
     """Seconds without a completed tick before the watchdog latches the safe stop.
-    Default: three periods."""
-    warmup_timeout: float = field(default=300.0, metadata=_positive())
+    Default: three periods, at least 0.1 s; at least two periods if set."""
+    warmup_timeout: float = field(default=300.0, metadata=_within(0.1, 3600.0, " s"))
     """Seconds the warm-up may take before the policy is refused; the first inference on a
     Jetson may build a TensorRT engine, which takes minutes."""
     warmup_runs: int = field(default=3, metadata=_check(lambda v: 1 <= v <= 100, "1..100"))
@@ -84,7 +99,9 @@ class LoopConfig:
 
     @property
     def watchdog_timeout_s(self) -> float:
-        return self.watchdog_timeout if self.watchdog_timeout is not None else 3.0 * self.period
+        if self.watchdog_timeout is not None:
+            return self.watchdog_timeout
+        return max(3.0 * self.period, DEFAULT_WATCHDOG_MIN_S)
 
 
 @dataclass
@@ -147,9 +164,9 @@ class CameraConfig:
     sensor_id: int = field(default=0, metadata=_check(lambda v: 0 <= v <= 7, "0..7"))
     capture_width: int = field(default=1280, metadata=_check(lambda v: 16 <= v <= 8192, "16..8192"))
     capture_height: int = field(default=720, metadata=_check(lambda v: 16 <= v <= 8192, "16..8192"))
-    fps: float = field(default=30.0, metadata=_positive())
+    fps: float = field(default=30.0, metadata=_within(1.0, 240.0))
     flip_method: int = field(default=0, metadata=_check(lambda v: 0 <= v <= 7, "0..7"))
-    start_timeout: float = field(default=10.0, metadata=_positive())
+    start_timeout: float = field(default=10.0, metadata=_within(0.1, 600.0, " s"))
     """Seconds to wait for the first frame before the camera counts as not started."""
 
 
@@ -175,11 +192,11 @@ class RecordConfig:
 
 @dataclass
 class SimConfig:
-    physics_hz: float = field(default=240.0, metadata=_positive())
+    physics_hz: float = field(default=240.0, metadata=_within(10.0, 10000.0, " Hz"))
     """Physics sub-step rate; each control tick advances the world by one period."""
-    motor_gain: float = field(default=20.0, metadata=_positive())
+    motor_gain: float = field(default=20.0, metadata=_within(0.01, 1000.0))
     """Wheel angular velocity (rad/s) at duty 1.0."""
-    motor_tau: float = field(default=0.05, metadata=_check(lambda v: v >= 0, "a number >= 0"))
+    motor_tau: float = field(default=0.05, metadata=_within(0.0, 10.0, " s"))
     """First-order lag time constant of the motor (s); 0 for none."""
     supersample: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
     """Render the camera image this many times wider and taller and area-average it down to
@@ -202,7 +219,7 @@ class SimConfig:
         default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1 s")
     )
     """Seconds from the world's state to the frame that shows it (whole physics sub-steps)."""
-    stall_torque: float | None = field(default=None, metadata=_positive())
+    stall_torque: float | None = field(default=None, metadata=_within(1e-6, 1e6))
     """N m per wheel at duty 1 and standstill: torque then scales with duty and falls with
     speed, as a PWM-driven DC motor's. Default: the ideal motor, 0.15 N m at any duty."""
     camera_pitch_deg: float = field(
@@ -256,7 +273,7 @@ class SimConfig:
     """Added to every pixel, as a fraction of full scale."""
     image_contrast: float = field(default=1.0, metadata=_check(lambda v: 0 <= v <= 3, "0..3"))
     """Scales each pixel's distance from mid-grey."""
-    camera_stall_after: float | None = field(default=None, metadata=_positive())
+    camera_stall_after: float | None = field(default=None, metadata=_within(0.001, 1e6, " s"))
     """Fault injection: the camera delivers no new frame after this many simulated seconds."""
     blackout: list[float] | None = field(
         default=None,
@@ -332,6 +349,50 @@ class Config:
     sim: SimConfig = field(default_factory=SimConfig)
     randomize: RandomizeConfig = field(default_factory=RandomizeConfig)
 
+    @property
+    def frame_interval(self) -> float:
+        """The longest time between two new frames: the sim renders one per tick, the camera
+        one per 1 / ``[camera] fps`` (the conservative union, whichever backend runs)."""
+        return max(self.loop.period, 1.0 / self.camera.fps)
+
+    @property
+    def max_frame_age_s(self) -> float:
+        """``[loop] max_frame_age``, or its default that follows the frame interval."""
+        if self.loop.max_frame_age is not None:
+            return self.loop.max_frame_age
+        return max(DEFAULT_FRAME_AGE_S, FRAME_AGE_INTERVALS * self.frame_interval)
+
+    def validate(self) -> None:
+        """Cross-key checks: values each in range that together cannot run. One line naming
+        the keys, as ``UsageError``."""
+        loop, period = self.loop, self.loop.period
+        if loop.watchdog_timeout is not None and loop.watchdog_timeout < 2 * period:
+            raise UsageError(
+                f"[loop] watchdog_timeout {loop.watchdog_timeout:g} s is shorter than two "
+                f"periods at [loop] rate_hz {loop.rate_hz:g} ({2 * period:.3g} s): it would "
+                "trip between two good ticks"
+            )
+        needed = FRAME_AGE_INTERVALS * self.frame_interval
+        if loop.max_frame_age is not None and loop.max_frame_age < needed:
+            raise UsageError(
+                f"[loop] max_frame_age {loop.max_frame_age:g} s is shorter than "
+                f"{FRAME_AGE_INTERVALS:g} frame intervals ({needed:.3g} s at [loop] rate_hz "
+                f"{loop.rate_hz:g} and [camera] fps {self.camera.fps:g}): good frames would "
+                "be refused as stale"
+            )
+
+    def validate_service_watchdog(self, ping_interval: float | None) -> None:
+        """Under systemd (``WatchdogSec``): every ``WATCHDOG=1`` is paid for by a completed
+        tick and goes out every ``ping_interval`` (WatchdogSec / 3); ticks further apart
+        than that would have systemd kill a healthy run."""
+        if ping_interval is not None and self.loop.period > ping_interval:
+            raise UsageError(
+                f"[loop] rate_hz {self.loop.rate_hz:g} puts ticks {self.loop.period:.3g} s "
+                f"apart, but the unit's WatchdogSec ({3 * ping_interval:g} s) needs a "
+                f"WATCHDOG=1 every {ping_interval:.3g} s: raise rate_hz to at least "
+                f"{1 / ping_interval:.3g} or WatchdogSec"
+            )
+
 
 def _type_ok(value: Any, annotation: str) -> Any:
     """Coerce a TOML value to the field's declared type, or raise TypeError."""
@@ -375,7 +436,11 @@ def set_value(section_obj: Any, section: str, key: str, value: Any) -> None:
     except TypeError as exc:
         raise UsageError(f"[{section}] {key} must be {exc}, got {value!r}") from None
     meta = spec.metadata
-    if "check" in meta and not meta["check"](coerced):
+    try:
+        ok = "check" not in meta or meta["check"](coerced)
+    except ValueError as exc:  # a check that says precisely what is wrong
+        raise UsageError(f"[{section}] {key} must be {exc}") from None
+    if not ok:
         raise UsageError(f"[{section}] {key} must be {meta['expected']}, got {value!r}")
     setattr(section_obj, key, coerced)
 

@@ -72,6 +72,7 @@ def build_config(args: argparse.Namespace) -> Config:
         raise UsageError(f"--duration must be > 0, got {args.duration:g}")
     if args.gui and args.backend != "sim":
         raise UsageError("--gui needs --backend sim")
+    config.validate()
     return config
 
 
@@ -260,6 +261,7 @@ class Runtime:
         self._install_signal_handlers()
         threading.excepthook = self._thread_died
         self.notifier = Notifier.from_env()
+        self.config.validate_service_watchdog(self.notifier.watchdog_interval)
         try:
             # The control socket first: a second jetbot-rt is refused before it opens (and
             # re-initialises) the motor board that the first one is driving.
@@ -308,7 +310,7 @@ class Runtime:
             watchdog=self.watchdog,
             telemetry=self.telemetry,
             period=loop_cfg.period,
-            max_frame_age=loop_cfg.max_frame_age,
+            max_frame_age=self.config.max_frame_age_s,
             advance=self.backend.advance,
             extra_telemetry=self.backend.telemetry,
             on_tick_done=lambda now: self.notifier.tick(now, self._status),
@@ -317,7 +319,8 @@ class Runtime:
         self.telemetry.event(
             "start", backend=self.args.backend, policy=policy.describe(),
             rate_hz=loop_cfg.rate_hz, max_speed=self.actions.max_speed,
-            watchdog_timeout_s=loop_cfg.watchdog_timeout_s, warmup_ms=round(self.warmup_ms, 3),
+            watchdog_timeout_s=loop_cfg.watchdog_timeout_s,
+            max_frame_age_s=self.config.max_frame_age_s, warmup_ms=round(self.warmup_ms, 3),
         )
         self.notifier.ready(f"ready: policy warmed up ({self.warmup_ms:.1f} ms), driving")
         loop_thread = threading.Thread(

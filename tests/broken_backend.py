@@ -18,3 +18,4 @@ def build_backend(config, options):
     drive.last = (0.5, 0.5)  # as if a previous owner left the board driving
     DRIVES.append(drive)
     return Backend(camera=BrokenCamera(), drive=drive)
+

@@ -38,7 +38,8 @@ address = 0x61
 source = "gst:videotestsrc"
 """))
     assert config.loop.rate_hz == 50.0 and isinstance(config.loop.rate_hz, float)
-    assert config.loop.watchdog_timeout_s == pytest.approx(0.06)
+    assert config.loop.watchdog_timeout_s == pytest.approx(0.1)  # 3 periods, at least 0.1 s
+    assert config.max_frame_age_s == pytest.approx(0.15)
     assert config.actions.max_speed == 0.2
     assert config.actions.trim == [1.0, 0.9]
     assert config.actions.sign == [1, -1]
@@ -50,8 +51,8 @@ source = "gst:videotestsrc"
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("[loop]\nrate_hz = 0", "[loop] rate_hz must be a number > 0, got 0"),
-        ("[loop]\nrate_hz = -5", "[loop] rate_hz must be a number > 0"),
+        ("[loop]\nrate_hz = 0", "[loop] rate_hz must be a number in [1, 100] Hz, got 0"),
+        ("[loop]\nrate_hz = -5", "[loop] rate_hz must be a number in [1, 100] Hz"),
         ("[loop]\nrate_hz = 'fast'", "[loop] rate_hz must be a number, got 'fast'"),
         ("[loop]\nspeed = 1", "unknown key [loop] speed"),
         ("[wheels]\nx = 1", "unknown section [wheels]"),

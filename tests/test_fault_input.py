@@ -8,6 +8,7 @@ tests/test_run_sim.py covers the first examples of each kind; this file goes thr
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import shutil
 import uuid
@@ -58,7 +59,22 @@ OUT_OF_RANGE = {
     ("sim", "seed"): None,  # any integer is a seed
     ("sim", "camera_stall_after"): 0,
     ("sim", "blackout"): [2.0, 1.0],
+    ("sim", "supersample"): 5,
+    ("record", "path"): None,  # any string is a directory: an unusable one is tests/test_record
+    ("record", "queue_frames"): 0,
+    ("record", "min_free_mb"): -1.0,
 }
+# Every duration and rate is bounded at both ends (issue 9: a 1e-10 Hz rate crashed the loop
+# thread, a 1e10 s timeout the watchdog's wait); TOML's inf and nan too.
+MORE_OUT_OF_RANGE = [
+    ("loop", "rate_hz", 1e-10), ("loop", "rate_hz", 1000.0), ("loop", "rate_hz", "inf"),
+    ("loop", "max_frame_age", 1e10), ("loop", "watchdog_timeout", 1e10),
+    ("loop", "watchdog_timeout", "nan"), ("loop", "warmup_timeout", 1e10),
+    ("loop", "warmup_timeout", "inf"), ("camera", "fps", 1e6), ("camera", "start_timeout", 1e10),
+    ("sim", "physics_hz", 1e12), ("sim", "motor_tau", "inf"), ("sim", "camera_stall_after", 1e12),
+    ("camera", "source", 'gst:videotestsrc ! capsfilter caps="video/x-raw'),
+    ("camera", "source", "gst:videotestsrc ! textoverlay text='unbalanced"),
+]
 # A value of the wrong TOML type for each declared type.
 WRONG_TYPE = {"float": "fast", "int": 1.5, "str": 7, "list[float]": 0.5, "list[int]": "both",
               "list[str]": "CPUExecutionProvider"}
@@ -95,6 +111,10 @@ def config_cases():
                                f"[{section}] {key} must be", id=f"{section}.{key}-out-of-range")
         yield pytest.param(f"[{section}]\n{key}s = 1\n", f"unknown key [{section}] {key}s",
                            id=f"{section}.{key}s-unknown")
+    for section, key, bad in MORE_OUT_OF_RANGE:
+        value = bad if bad in ("inf", "nan") else json.dumps(bad)
+        yield pytest.param(f"[{section}]\n{key} = {value}\n", f"[{section}] {key} must be",
+                           id=f"{section}.{key}-{str(bad)[:12]}")
     yield pytest.param("[wheels]\nleft = 1\n", "unknown section [wheels]", id="unknown-section")
     yield pytest.param("loop = 30\n", "[loop] must be a table", id="section-not-a-table")
     yield pytest.param("[loop\nrate_hz = 30\n", "is not valid TOML", id="not-toml")
@@ -129,9 +149,9 @@ def test_every_bad_config_key_and_value(tmp_path, good_policy, capfd, monkeypatc
 
 
 @pytest.mark.parametrize(("flags", "message"), [
-    (["--rate", "inf"], "--rate: [loop] rate_hz must be a number > 0"),
-    (["--rate", "nan"], "--rate: [loop] rate_hz must be a number > 0"),
-    (["--rate", "-30"], "--rate: [loop] rate_hz must be a number > 0"),
+    (["--rate", "inf"], "--rate: [loop] rate_hz must be a number in [1, 100] Hz"),
+    (["--rate", "nan"], "--rate: [loop] rate_hz must be a number in [1, 100] Hz"),
+    (["--rate", "-30"], "--rate: [loop] rate_hz must be a number in [1, 100] Hz"),
     (["--max-speed", "0"], "--max-speed: [actions] max_speed must be a number in (0, 1]"),
     (["--max-speed", "nan"], "--max-speed: [actions] max_speed must be a number in (0, 1]"),
     (["--duration", "0"], "--duration must be > 0"),
