@@ -63,6 +63,43 @@ OUT_OF_RANGE = {
     ("record", "path"): None,  # any string is a directory: an unusable one is tests/test_record
     ("record", "queue_frames"): 0,
     ("record", "min_free_mb"): -1.0,
+    ("sim", "wheel_gain"): [1.0, 0.0],
+    ("sim", "deadband"): 1.0,
+    ("sim", "latency"): 1.5,
+    ("sim", "camera_latency"): -0.1,
+    ("sim", "stall_torque"): 0.0,
+    ("sim", "camera_pitch_deg"): 90.0,
+    ("sim", "camera_height"): 0.01,
+    ("sim", "camera_vfov_deg"): 170.0,
+    ("sim", "floor_color"): [0.5, 0.5, 1.5],
+    ("sim", "floor_texture"): "marble",
+    ("sim", "wall_color"): [0.5, 0.5],
+    ("sim", "block_color"): [-0.1, 0.0, 0.0],
+    ("sim", "light_direction"): [0.0, 0.0, 0.0],
+    ("sim", "light_intensity"): 4.0,
+    ("sim", "image_noise"): 2.0,
+    ("sim", "image_blur"): 0.5,
+    ("sim", "image_brightness"): -2.0,
+    ("sim", "image_contrast"): 5.0,
+    ("randomize", "enabled"): None,  # true or false
+    ("randomize", "wheel_gain"): [1.2, 0.8],
+    ("randomize", "motor_gain"): [0.0, 1.0],
+    ("randomize", "deadband"): [0.0, 1.0],
+    ("randomize", "latency"): [0.0, 2.0],
+    ("randomize", "camera_latency"): [-0.1, 0.1],
+    ("randomize", "stall_torque"): [0.0, 0.1],
+    ("randomize", "camera_pitch_deg"): [0.8, 4.0],
+    ("randomize", "camera_height"): [0.1, 1.0],
+    ("randomize", "camera_vfov_deg"): [0.1, 1.0],
+    ("randomize", "floor_color"): [0.6, 6.0],
+    ("randomize", "wall_color"): [-1.0, 1.3],
+    ("randomize", "block_color"): [1.1, 0.8],
+    ("randomize", "light_elevation_deg"): [30.0, 100.0],
+    ("randomize", "light_intensity"): [0.7, 4.0],
+    ("randomize", "image_noise"): [0.0, 2.0],
+    ("randomize", "image_blur"): [0.0, 0.5],
+    ("randomize", "image_brightness"): [-2.0, 0.1],
+    ("randomize", "image_contrast"): [0.8, 4.0],
 }
 # Every duration and rate is bounded at both ends (issue 9: a 1e-10 Hz rate crashed the loop
 # thread, a 1e10 s timeout the watchdog's wait); TOML's inf and nan too.
@@ -76,8 +113,8 @@ MORE_OUT_OF_RANGE = [
     ("camera", "source", "gst:videotestsrc ! textoverlay text='unbalanced"),
 ]
 # A value of the wrong TOML type for each declared type.
-WRONG_TYPE = {"float": "fast", "int": 1.5, "str": 7, "list[float]": 0.5, "list[int]": "both",
-              "list[str]": "CPUExecutionProvider"}
+WRONG_TYPE = {"bool": "yes", "float": "fast", "int": 1.5, "str": 7, "list[float]": 0.5,
+              "list[int]": "both", "list[str]": "CPUExecutionProvider"}
 
 
 def all_keys() -> list[tuple[str, str, str]]:
