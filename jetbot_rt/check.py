@@ -105,7 +105,7 @@ def check_camera(config: Config, size: tuple[int, int], frames: int) -> str:
     finally:
         camera.stop()
     if len(taken) < frames:
-        raise RuntimeError(f"only {len(taken)} of {frames} frames arrived, then the camera stalled")
+        raise RuntimeError(_short_of_frames(taken, frames, config.camera.fps))
     shape = taken[-1].image.shape
     if shape != (size[1], size[0], 3):
         raise RuntimeError(f"frames are {shape}, expected {(size[1], size[0], 3)}")
@@ -119,6 +119,22 @@ def check_camera(config: Config, size: tuple[int, int], frames: int) -> str:
     if fps < MIN_RATE_FRACTION * config.camera.fps:
         raise RuntimeError(f"{detail}: slower than {config.camera.fps:g} fps")
     return detail
+
+
+def _short_of_frames(taken: list[Any], frames: int, expected_fps: float) -> str:
+    """Why fewer than ``frames`` came in time: a camera that stopped delivering (stalled), or
+    one that delivers, only slower than ``[camera] fps`` says."""
+    now = time.monotonic()
+    quiet = now - taken[-1].t_capture if taken else None
+    if len(taken) >= 2:
+        fps = (len(taken) - 1) / max(taken[-1].t_capture - taken[0].t_capture, 1e-9)
+        if quiet is not None and quiet < max(1.0, 3.0 / fps):
+            return (f"only {len(taken)} of {frames} frames in time: the camera delivers "
+                    f"{fps:.1f} fps, slower than [camera] fps {expected_fps:g}")
+    if not taken:
+        return f"no frame arrived (expected {frames} at [camera] fps {expected_fps:g})"
+    return (f"only {len(taken)} of {frames} frames arrived, then the camera stalled "
+            f"(none for {quiet:.1f} s)")
 
 
 def _policy_path(args: argparse.Namespace, config: Config) -> Path:

@@ -50,6 +50,22 @@ def provider_options(providers: list[str]) -> list[str | tuple[str, dict[str, st
     return result
 
 
+def shown(path: str | Path) -> str:
+    """A path as messages show it: a byte that is not UTF-8 as ``\\xNN``, never a lone
+    surrogate that a strict stream cannot print."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
+def _model_source(path: Path) -> str | bytes:
+    """What onnxruntime is given: the path, or the file's bytes where the path is not UTF-8
+    (onnxruntime accepts only UTF-8 paths and says "incompatible constructor arguments")."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        return path.read_bytes()
+    return str(path)
+
+
 def bundled_policy_path() -> Path:
     return Path(__file__).resolve().parent / "policies" / "forward.onnx"
 
@@ -113,7 +129,7 @@ class OnnxPolicy:
         config = config or PolicyConfig()
         path = Path(path)
         if not path.is_file():
-            raise UsageError(f"policy {path}: no such file")
+            raise UsageError(f"policy {shown(path)}: no such file")
         available = ort.get_available_providers()
         wanted = config.providers or list(PROVIDER_PREFERENCE)
         providers = [p for p in wanted if p in available] or ["CPUExecutionProvider"]
@@ -129,19 +145,19 @@ class OnnxPolicy:
         options.inter_op_num_threads = threads
         try:
             session = ort.InferenceSession(
-                str(path), options, providers=provider_options(providers)
+                _model_source(path), options, providers=provider_options(providers)
             )
         except Exception as exc:  # onnxruntime raises several unrelated types for bad files
             raise UsageError(
-                f"policy {path}: not a loadable ONNX model ({first_line(exc)})"
+                f"policy {shown(path)}: not a loadable ONNX model ({first_line(exc)})"
             ) from None
         metadata = dict(session.get_modelmeta().custom_metadata_map)
-        spec = cls._input_spec(session, path, config, metadata)
-        action_output = cls._action_output(session, path)
+        spec = cls._input_spec(session, shown(path), config, metadata)
+        action_output = cls._action_output(session, shown(path))
         return cls(session, spec, action_output, path, metadata)
 
     @staticmethod
-    def _input_spec(session: Any, path: Path, config: PolicyConfig,
+    def _input_spec(session: Any, path: str, config: PolicyConfig,
                     metadata: dict[str, str]) -> InputSpec:
         inputs = session.get_inputs()
         if len(inputs) != 1:
@@ -161,7 +177,13 @@ class OnnxPolicy:
                 f"policy {path}: expected input dtype float32, float16 or uint8, "
                 f"found {model_input.type}"
             )
-        layout = config.layout or metadata.get(META_PREFIX + "layout") or _infer_layout(shape)
+        stated = metadata.get(META_PREFIX + "layout")
+        if not config.layout and stated is not None and stated not in LAYOUTS:
+            raise UsageError(
+                f"policy {path}: its metadata {META_PREFIX}layout = {stated!r} is not one of "
+                f"{', '.join(LAYOUTS)} (fix the export, or set [policy] layout to override it)"
+            )
+        layout = config.layout or stated or _infer_layout(shape)
         if layout not in LAYOUTS:
             raise UsageError(
                 f"policy {path}: cannot tell the image layout of input shape {shape} "
@@ -191,7 +213,7 @@ class OnnxPolicy:
                          _DTYPES[model_input.type], color, pixel_range)
 
     @staticmethod
-    def _action_output(session: Any, path: Path) -> str:
+    def _action_output(session: Any, path: str) -> str:
         outputs = session.get_outputs()
         chosen = next((o for o in outputs if o.name == "mu"), outputs[0])
         if chosen.type not in ("tensor(float)", "tensor(float16)", "tensor(double)"):
@@ -249,7 +271,7 @@ class OnnxPolicy:
     def describe(self) -> dict[str, Any]:
         spec = self.spec
         return {
-            "path": str(self.path),
+            "path": shown(self.path),
             "input": spec.name,
             "layout": spec.layout,
             "size": [spec.width, spec.height],

@@ -24,7 +24,7 @@ from jetbot_rt.config import Config, load_config, set_value
 from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE, Fault, UsageError, first_line
 from jetbot_rt.hal import BackendOptions, make_backend
 from jetbot_rt.loop import ControlLoop
-from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
+from jetbot_rt.policy import OnnxPolicy, bundled_policy_path, shown
 from jetbot_rt.recorder import Recorder, recording_line
 from jetbot_rt.recorder import open_for_run as open_recorder
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
@@ -145,7 +145,7 @@ class Runtime:
                 "load", lambda: OnnxPolicy.load(path, self.config.policy), limit
             )
         except TimeoutError:
-            raise UsageError(f"policy {path}: loading did not finish within {limit:.1f} s") \
+            raise UsageError(f"policy {shown(path)}: loading did not finish within {limit:.1f} s") \
                 from None
 
     def prepare(self, policy: OnnxPolicy) -> None:
@@ -197,21 +197,22 @@ class Runtime:
             first, timings = self._in_worker("warmup", run_warmup, limit)
         except TimeoutError:
             raise UsageError(
-                f"policy {policy.path}: warm-up inference did not finish within {limit:.1f} s"
+                f"policy {shown(policy.path)}: warm-up inference did not finish within "
+                f"{limit:.1f} s"
             ) from None
         except Exception as exc:
-            raise UsageError(f"policy {policy.path}: warm-up inference failed: "
+            raise UsageError(f"policy {shown(policy.path)}: warm-up inference failed: "
                              f"{first_line(exc)}") from None
         try:
             self.actions.duties(first)
         except Fault as exc:
-            raise UsageError(f"policy {policy.path}: on the first camera frame: {exc} "
+            raise UsageError(f"policy {shown(policy.path)}: on the first camera frame: {exc} "
                              "(refused before driving)") from None
         fastest = min(timings)
         self.warmup_ms = fastest * 1e3
         if fastest > period:
             raise UsageError(
-                f"policy {policy.path}: too slow for {self.config.loop.rate_hz:g} Hz: "
+                f"policy {shown(policy.path)}: too slow for {self.config.loop.rate_hz:g} Hz: "
                 f"{fastest * 1e3:.1f} ms per inference > period {period * 1e3:.1f} ms "
                 "(lower --rate or use a smaller model)"
             )

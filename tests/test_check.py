@@ -90,3 +90,28 @@ def test_a_camera_slower_than_configured_fails(robot) -> None:
     result = check(robot, config)
     assert result.returncode == 1
     assert "slower than 30 fps" in rows(result.stdout)["camera"]
+
+
+@pytest.mark.parametrize(("source", "expected", "not_expected"), [
+    # a live camera at 5 fps while [camera] fps says 30: slow, not stalled
+    ("gst:videotestsrc is-live=true ! video/x-raw,framerate=5/1",
+     "the camera delivers 5.0 fps, slower than [camera] fps 30", "stalled"),
+    ("gst:videotestsrc is-live=true ! video/x-raw,framerate=4/1",
+     "the camera delivers 4.0 fps, slower than [camera] fps 30", "stalled"),
+    # a camera that stops after 3 frames: stalled
+    ("gst:videotestsrc is-live=true num-buffers=3", "3 of 30 frames arrived, then the camera "
+     "stalled", "slower"),
+])
+def test_a_slow_camera_is_called_slow_and_a_stalled_one_stalled(robot, source: str,
+                                                                 expected: str,
+                                                                 not_expected: str) -> None:
+    config = write_config(robot, source)
+    env = dict(os.environ, **{EMULATOR_ENV: str(robot / "chip.json"),
+                              "JETBOT_RT_RUNTIME_DIR": str(robot / "run")})
+    result = subprocess.run(
+        [sys.executable, "-m", "jetbot_rt.cli", "check", "--config", str(config),
+         "--policy", str(robot / "policy.onnx"), "--frames", "30"],
+        capture_output=True, text=True, timeout=60, env=env)
+    assert result.returncode == 1, result.stdout + result.stderr
+    camera = rows(result.stdout)["camera"]
+    assert "FAIL" in camera and expected in camera and not_expected not in camera, camera

@@ -200,3 +200,34 @@ def test_a_non_finite_answer_to_the_first_frame_is_bad_input(tmp_path: Path, mod
 
     assert PCA9685Emulator(0x60, state_file=chip).refresh().all_off()
     assert not processes_with(mark)
+
+
+# ---- messages that used to mislead ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", [b"p\xe9.onnx", b"\xff\xfe-policy.onnx"])
+def test_a_model_path_that_is_not_utf8_loads(tmp_path: Path, name: bytes) -> None:
+    """onnxruntime takes only UTF-8 paths ("incompatible constructor arguments"): the runtime
+    gives it the file's bytes instead, and shows the odd byte as \\xNN."""
+    path = os.path.join(os.fsencode(tmp_path), name)
+    policy_models.constant(Path(os.fsdecode(path)), (0.5, 0.5))
+    telemetry = tmp_path / "t.jsonl"
+    result = run_cli(["run", "--backend", "sim", "--policy", os.fsdecode(path),
+                      "--duration", "1"], telemetry=telemetry,
+                     env=dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run")))
+    assert "incompatible constructor" not in result.stderr
+    assert result.returncode in (0, 3), result.stderr  # 3: a watchdog trip on a loaded host
+    assert result.ticks, result.stdout + result.stderr
+    (start,) = result.events("start")
+    assert start["policy"]["path"].endswith(name.decode("utf-8", "backslashreplace"))
+
+
+@pytest.mark.parametrize("stated", ["NWHC", "nhwc", "HWC"])
+def test_a_layout_in_the_metadata_that_is_not_one_is_named(tmp_path: Path, stated: str) -> None:
+    policy = policy_models.constant(tmp_path / "p.onnx", metadata={"jetbot_rt.layout": stated})
+    result = run_cli(["run", "--backend", "sim", "--policy", str(policy), "--duration", "1"],
+                     env=dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run")))
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert f"jetbot_rt.layout = {stated!r} is not one of NHWC, NCHW" in line, line
+    assert "cannot tell" not in line
