@@ -315,11 +315,13 @@ class RandomizeConfig:
     )
     """Factor (duckietown: camera_fov_y 0.8..1.2)."""
     floor_color: list[float] = field(default_factory=lambda: [0.6, 1.4], metadata=_range(0, 5))
-    """Factor, drawn for each channel apart."""
+    """Factor on all three channels (lighter or darker), then ``tint``."""
     wall_color: list[float] = field(default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5))
-    """Factor, drawn for each channel of each wall apart."""
+    """Factor on all three channels of each wall apart, then ``tint``."""
     block_color: list[float] = field(default_factory=lambda: [0.8, 1.1], metadata=_range(0, 5))
-    """Factor, drawn for each channel apart."""
+    """Factor on all three channels, then ``tint``."""
+    tint: list[float] = field(default_factory=lambda: [0.85, 1.15], metadata=_range(0, 5))
+    """Factor on each channel of each colour apart: a shift of hue."""
     light_elevation_deg: list[float] = field(
         default_factory=lambda: [30.0, 90.0], metadata=_range(-90, 90)
     )

@@ -37,8 +37,10 @@ def _r(value: float) -> float:
     return round(float(value), 6)
 
 
-def _color(rng: np.random.Generator, base: list[float], factor: list[float]) -> list[float]:
-    factors = _uniform(rng, factor, 3)
+def _color(rng: np.random.Generator, base: list[float], factor: list[float],
+           tint: list[float]) -> list[float]:
+    """``base`` lighter or darker by one factor, then each channel by a tint factor."""
+    factors = _uniform(rng, factor) * _uniform(rng, tint, 3)
     return [_r(min(max(c * f, 0.0), 1.0)) for c, f in zip(base, factors, strict=True)]
 
 
@@ -50,7 +52,7 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
     azimuth = rng.uniform(-math.pi, math.pi)
     elevation = math.radians(_uniform(rng, r.light_elevation_deg))
     stall = _uniform(rng, r.stall_torque) if r.stall_torque is not None else None
-    walls = [c for rgb in wall_colors(base) for c in _color(rng, list(rgb), r.wall_color)]
+    walls = [c for rgb in wall_colors(base) for c in _color(rng, list(rgb), r.wall_color, r.tint)]
     drawn: dict[str, Any] = {
         "wheel_gain": [_r(min(base.wheel_gain[i] * gains[i], 2.0)) for i in (0, 1)],
         "motor_gain": _r(base.motor_gain * _uniform(rng, r.motor_gain)),
@@ -61,9 +63,9 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
         "camera_pitch_deg": _r(base.camera_pitch_deg * _uniform(rng, r.camera_pitch_deg)),
         "camera_height": _r(base.camera_height * _uniform(rng, r.camera_height)),
         "camera_vfov_deg": _r(base.camera_vfov_deg * _uniform(rng, r.camera_vfov_deg)),
-        "floor_color": _color(rng, base.floor_color, r.floor_color),
+        "floor_color": _color(rng, base.floor_color, r.floor_color, r.tint),
         "wall_color": walls,
-        "block_color": _color(rng, base.block_color, r.block_color),
+        "block_color": _color(rng, base.block_color, r.block_color, r.tint),
         "light_direction": [
             _r(math.cos(elevation) * math.cos(azimuth)),
             _r(math.cos(elevation) * math.sin(azimuth)),
