@@ -94,6 +94,7 @@ OUT_OF_RANGE = {
     ("randomize", "floor_color"): [0.6, 6.0],
     ("randomize", "wall_color"): [-1.0, 1.3],
     ("randomize", "block_color"): [1.1, 0.8],
+    ("randomize", "tint"): [0.9, 9.0],
     ("randomize", "light_elevation_deg"): [30.0, 100.0],
     ("randomize", "light_intensity"): [0.7, 4.0],
     ("randomize", "image_noise"): [0.0, 2.0],
