@@ -165,6 +165,10 @@ class Recorder:
     # ---- the writer thread ------------------------------------------------------------------
 
     def _write_all(self) -> None:
+        # The lowest CPU priority for this thread only (Linux: a thread's nice value is its
+        # own): encoding yields to the control thread whenever both want a core.
+        with contextlib.suppress(AttributeError, OSError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         while True:
             try:
                 item = self._queue.get(timeout=0.1)
