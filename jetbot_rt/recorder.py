@@ -90,15 +90,16 @@ class Recorder:
 
     ``fit`` brings a frame to ``frame_size`` the way the policy does (for a camera that
     delivers another size). ``blocking`` makes ``observe`` wait for room instead of dropping
-    (offline use: evaluation, where nothing waits on the caller). ``t0`` is the clock value
-    that ``t`` is counted from in the records.
+    (offline use: evaluation, where nothing waits on the caller). ``t`` in the records counts
+    from ``t0`` on ``clock`` (monotonic time; simulated time for an evaluation).
     """
 
     def __init__(self, path: str | Path, meta: dict[str, Any], frame_size: tuple[int, int],
                  rate_hz: float, *, queue_frames: int = 64,
                  fit: Callable[[np.ndarray], np.ndarray] | None = None,
                  blocking: bool = False, t0: float | None = None,
-                 min_free_mb: float = 64.0) -> None:
+                 min_free_mb: float = 64.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.path = Path(path)
         prepare_directory(self.path)
         self.frame_size = frame_size
@@ -106,7 +107,8 @@ class Recorder:
         self.blocking = blocking
         self.min_free = min_free_mb * 1e6
         self._next_space_check = 0.0
-        self.t0 = time.monotonic() if t0 is None else t0
+        self.clock = clock
+        self.t0 = clock() if t0 is None else t0
         self.frames_written = 0
         self.frames_dropped = 0
         self.records_written = 0
@@ -151,7 +153,7 @@ class Recorder:
     def event(self, name: str, **fields: Any) -> None:
         """An event record (``safe_stop``, ``end``...) in ``ticks.jsonl``, as telemetry has."""
         if self.error is None and not self._closing.is_set():
-            self._put({"t": round(time.monotonic() - self.t0, 6), "event": name, **fields})
+            self._put({"t": round(self.clock() - self.t0, 6), "event": name, **fields})
 
     def _put(self, item: Any) -> None:
         try:
@@ -249,8 +251,9 @@ class Recorder:
         return counts
 
     def close(self, run_summary: dict[str, Any] | None = None,
-              timeout: float = CLOSE_TIMEOUT) -> dict[str, Any]:
-        """Let the writer drain for at most ``timeout`` s; returns the counts for the summary."""
+              timeout: float | None = CLOSE_TIMEOUT) -> dict[str, Any]:
+        """Let the writer drain for at most ``timeout`` s (None: until done); returns the
+        counts for the summary."""
         if self._closing.is_set():
             return self.counts()
         if run_summary is not None:

@@ -240,3 +240,18 @@ def test_close_is_bounded_when_the_disk_hangs(tmp_path):
     fd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # let the stuck thread go
     wait_for(lambda: not recorder._thread.is_alive(), 5)
     os.close(fd)
+
+
+def test_eval_video_records_episodes_that_replay(tmp_path):
+    train = Path(JETBOT_RT).with_name("jetbot-train")
+    proc = subprocess.run([str(train), "eval", "--episodes", "1", "--num-envs", "1", "--json",
+                           "--video", str(tmp_path / "ev")], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.splitlines()[-1])
+    episode = tmp_path / "ev" / f"episode-{result['seed']}"
+    recording = Recording.open(episode)
+    assert recording.meta["source"] == "jetbot-train eval"
+    assert len(recording.ticks) == result["episode_steps"] == recording.summary["frames_written"]
+    assert recording.events[-1]["success"] == (result["success_rate"] == 1.0)
+    assert replay(str(episode))["mu_max_abs_diff"] <= 1e-6

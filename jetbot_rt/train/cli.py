@@ -58,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="episode i starts from the pose drawn with seed + i")
     evaluate.add_argument("--config", help="TOML config")
     evaluate.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    evaluate.add_argument("--video", metavar="DIR",
+                          help="record each episode into DIR/episode-<seed>/ as run --record "
+                               "does (look at it with jetbot-rt report)")
     return parser
 
 
@@ -98,7 +101,7 @@ def _eval(args: argparse.Namespace) -> int:
         os.dup2(2, 1)
     result = evaluate(
         args.policy, task=args.task, episodes=args.episodes, seed=args.seed,
-        num_workers=args.num_envs, config=load_config(args.config),
+        num_workers=args.num_envs, config=load_config(args.config), video_dir=args.video,
     )
     if args.json:
         json_out.write(json.dumps(result) + "\n")

@@ -15,6 +15,7 @@ from jetbot_rt.config import Config
 from jetbot_rt.errors import UsageError
 from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of, get_task
+from jetbot_rt.train.video import EpisodeRecording, timed
 
 
 def load_policy(path: str | Path, config: Config, single_thread: bool = True) -> OnnxPolicy:
@@ -24,28 +25,39 @@ def load_policy(path: str | Path, config: Config, single_thread: bool = True) ->
 
 
 def run_episode(env: JetbotEnv, policy: OnnxPolicy, seed: int | None,
-                options: dict[str, Any] | None = None) -> dict[str, Any]:
-    """One episode with ``mu`` as the action; returns return, final distance, success."""
+                options: dict[str, Any] | None = None,
+                video_dir: str | None = None) -> dict[str, Any]:
+    """One episode with ``mu`` as the action; returns return, final distance, success.
+    With ``video_dir``, the episode is recorded there (``jetbot_rt.train.video``)."""
+    video = EpisodeRecording.of(video_dir, env, policy, seed) if video_dir else None
     obs, info = env.reset(seed=seed, options=options)
     total = 0.0
     truncated = terminated = False
     while not (truncated or terminated):
-        obs, reward, terminated, truncated, info = env.step(policy.infer(obs))
+        seen = obs
+        mu, infer_ms = timed(policy.infer, seen)
+        (obs, reward, terminated, truncated, info), step_ms = timed(env.step, mu)
         total += reward
-    return {
+        if video is not None:
+            video.step(seen, mu, info, infer_ms, step_ms)
+    result = {
         "seed": seed,
         "return": total,
         "final_distance": float(info["distance"]),
         "success": bool(info["is_success"]),
     }
+    if video is not None:
+        video.close(result)
+    return result
 
 
-def _run_episodes(policy_path: str, task: str, config: Config, seeds: list[int]) -> list[dict]:
+def _run_episodes(policy_path: str, task: str, config: Config, seeds: list[int],
+                  video_dir: str | None = None) -> list[dict]:
     policy = load_policy(policy_path, config)
     env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
                     image_size=(policy.spec.width, policy.spec.height))
     try:
-        return [run_episode(env, policy, seed) for seed in seeds]
+        return [run_episode(env, policy, seed, video_dir=video_dir) for seed in seeds]
     finally:
         env.close()
 
@@ -58,8 +70,10 @@ def evaluate(
     seed: int = 10_000,
     num_workers: int = 1,
     config: Config | None = None,
+    video_dir: str | None = None,
 ) -> dict[str, Any]:
-    """Evaluate ``policy_path`` (default: the bundled policy) over ``episodes`` episodes."""
+    """Evaluate ``policy_path`` (default: the bundled policy) over ``episodes`` episodes;
+    record each in ``video_dir/episode-<seed>/`` if given."""
     if episodes <= 0:
         raise UsageError(f"--episodes must be > 0, got {episodes}")
     if num_workers <= 0:
@@ -72,12 +86,12 @@ def evaluate(
     workers = min(num_workers, episodes)
     start = time.perf_counter()
     if workers == 1:
-        results = _run_episodes(str(path), task, config, seeds)
+        results = _run_episodes(str(path), task, config, seeds, video_dir)
     else:
         chunks = [seeds[i::workers] for i in range(workers)]
         with multiprocessing.get_context("spawn").Pool(workers) as pool:
             parts = pool.starmap(
-                _run_episodes, [(str(path), task, config, chunk) for chunk in chunks]
+                _run_episodes, [(str(path), task, config, chunk, video_dir) for chunk in chunks]
             )
         results = sorted((r for part in parts for r in part), key=lambda r: r["seed"])
     wall = time.perf_counter() - start
