@@ -22,6 +22,9 @@ from jetbot_rt.recorder import Recorder, sha256_of
 from jetbot_rt.recording import Recording
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "RECORDING.md"
+# What these tests check does not depend on the loop's timing: on a loaded 2-core machine a sim
+# tick can take 100 ms, which the default watchdog (3 periods) would end as a fault.
+PATIENT = "[loop]\nwatchdog_timeout = 2.0\nmax_frame_age = 0.5\n"
 
 
 def replay(*args: str) -> dict:
@@ -35,7 +38,7 @@ def replay(*args: str) -> dict:
 def sim_run(tmp_path_factory):
     """A sim run that ends in a safe stop: the camera stalls after 1 s of simulated time."""
     root = tmp_path_factory.mktemp("simrec")
-    (root / "c.toml").write_text("[sim]\ncamera_stall_after = 1.0\n")
+    (root / "c.toml").write_text(PATIENT + "[sim]\ncamera_stall_after = 1.0\n")
     result = run_cli(["run", "--backend", "sim", "--duration", "10", "--config",
                       str(root / "c.toml"), "--record", str(root / "rec")],
                      telemetry=root / "t.jsonl", timeout=120)
@@ -53,8 +56,7 @@ def test_sim_recording_holds_every_tick_and_replays_at_round_off(sim_run):
     assert recording.meta["policy"]["sha256"] == sha256_of(bundled_policy_path())
     assert recording.meta["config"]["sim"]["camera_stall_after"] == 1.0
     assert [e["event"] for e in recording.events] == ["safe_stop", "end"]
-    assert "stale frame" in recording.events[0]["reason"] or "watchdog" in \
-        recording.events[0]["reason"]
+    assert "stale frame" in recording.events[0]["reason"]
     assert re.search(rf"recording +{re.escape(str(rec))}: {len(ticks)} frames, 0 dropped",
                      result.stdout)
     summary = replay(str(rec))
@@ -134,8 +136,8 @@ def test_report_writes_a_video_at_real_pace_and_a_plot(sim_run, tmp_path):
 def test_real_backend_recording_replays_at_round_off(tmp_path):
     runtime = RuntimeProcess(
         tmp_path, "real", bundled_policy_path(), duration=1.5,
-        config='[camera]\nsource = "gst:videotestsrc is-live=true pattern=ball"\n'
-               "start_timeout = 5\n")
+        config=PATIENT + '[camera]\nsource = "gst:videotestsrc is-live=true pattern=ball"\n'
+        "start_timeout = 5\n")
     runtime.args += ["--record", str(tmp_path / "rec")]
     result = runtime.start().finish(timeout=60)
     assert result.returncode == 0, result.stderr
@@ -161,7 +163,7 @@ def test_existing_recording_is_refused_before_any_motor_moves(sim_run, tmp_path)
 
 
 def test_disk_nearly_full_stops_the_recording_not_the_robot(tmp_path):
-    (tmp_path / "c.toml").write_text("[record]\nmin_free_mb = 1e12\n")  # more than any disk
+    (tmp_path / "c.toml").write_text(PATIENT + "[record]\nmin_free_mb = 1e12\n")  # > any disk
     result = run_cli(["run", "--backend", "sim", "--duration", "1", "--config",
                       str(tmp_path / "c.toml"), "--record", str(tmp_path / "rec")],
                      telemetry=tmp_path / "t.jsonl")
@@ -175,7 +177,8 @@ def test_disk_nearly_full_stops_the_recording_not_the_robot(tmp_path):
 
 
 def test_directory_removed_while_recording_the_robot_drives_on(tmp_path):
-    runtime = RuntimeProcess(tmp_path, "sim", bundled_policy_path(), duration=4.0)
+    runtime = RuntimeProcess(tmp_path, "sim", bundled_policy_path(), duration=4.0,
+                             config=PATIENT)
     runtime.args += ["--record", str(tmp_path / "rec")]
     runtime.start()
     runtime.wait_ticks(10)
