@@ -101,3 +101,22 @@ def test_the_default_config_file_shows_the_defaults():
 
     shipped = load_config(str(resources.files("jetbot_rt") / "data" / "default-config.toml"))
     assert shipped.sim == Config().sim and shipped.randomize == Config().randomize
+
+
+def test_the_sim_backend_draws_once_from_its_seed_when_enabled():
+    from jetbot_rt.hal.registry import BackendOptions, make_backend
+
+    def first_frame(data: dict) -> np.ndarray:
+        backend = make_backend("sim", from_dict(data), BackendOptions(frame_size=(64, 64)))
+        try:
+            backend.camera.start()
+            return backend.camera.read().image.copy()
+        finally:
+            backend.close()
+
+    plain = first_frame({})
+    drawn = first_frame({"randomize": {"enabled": True}, "sim": {"seed": 11}})
+    again = first_frame({"randomize": {"enabled": True}, "sim": {"seed": 11}})
+    other = first_frame({"randomize": {"enabled": True}, "sim": {"seed": 12}})
+    assert np.array_equal(drawn, again)
+    assert not np.array_equal(drawn, plain) and not np.array_equal(drawn, other)
