@@ -75,7 +75,9 @@ class SensorEffects:
         if self._contrast != 1 or self._brightness != 0:
             out = (out - 127.5) * self._contrast + 127.5 + 255.0 * self._brightness
         if self._noise > 0:
-            out += self._rng.normal(0.0, 255.0 * self._noise, out.shape).astype(np.float32)
+            noise = self._rng.standard_normal(out.shape, dtype=np.float32)
+            noise *= np.float32(255.0 * self._noise)
+            out += noise
         return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
