@@ -65,11 +65,8 @@ def check_motor_board(config: Config) -> str:
 
 
 def spin_wheels(config: Config) -> str:
-    from jetbot_rt.control import default_socket_path, runtime_answers
     from jetbot_rt.hal.motors import open_drive
 
-    if runtime_answers(default_socket_path()):
-        raise RuntimeError("a jetbot-rt runtime is driving; stop it first (jetbot-rt stop)")
     # Every signal that would end or suspend the process raises ``Interrupted`` here (the
     # CLI's handler): the pulse ends in the finally below; a second signal cannot cut the
     # stop short (deferred), it is raised once the board is off.
@@ -171,6 +168,12 @@ def run(args: argparse.Namespace) -> int:
     config.validate()
     if args.frames < 2:
         raise UsageError(f"--frames must be at least 2, got {args.frames}")
+    if args.spin:
+        from jetbot_rt.hal.ownership import BoardLock
+
+        # The wheels move only if this process owns the bus: refused (exit 2, naming the
+        # owner) while a runtime drives, whatever its environment or user.
+        BoardLock.acquire(config.motors.i2c_bus)
     rows = [_row("motor board", lambda: check_motor_board(config))]
     if args.spin:
         rows.append(_row("spin", lambda: spin_wheels(config)))

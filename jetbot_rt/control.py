@@ -1,6 +1,12 @@
 """The runtime's control channel: a UNIX socket on which ``jetbot-rt stop`` asks a running
 ``jetbot-rt run`` to latch its safe stop.
 
+Each runtime has its own socket, ``control-<pid>.sock`` in the runtime directory, so any
+number of runtimes (simulations) can run side by side; the socket is for talking to a runtime,
+not for keeping a second one out (that is the motor bus's owner lock, ``hal/ownership.py``).
+``jetbot-rt stop`` asks every socket it finds; it does not depend on finding one: its hardware
+stop defeats a runtime it cannot reach (``stop.py``).
+
 Protocol: one line per connection. ``stop`` -> ``ok`` (after ``on_stop`` has run), ``ping``
 -> ``pong``. The socket is mode 0600 in a directory of mode 0700, so only the runtime's user
 (and root) can stop it this way.
@@ -14,6 +20,7 @@ delays nobody else's ``stop``. Such a client is dropped after ``CLIENT_TIMEOUT_S
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import os
 import selectors
 import socket
@@ -26,29 +33,49 @@ from pathlib import Path
 
 from jetbot_rt.errors import UsageError
 
-SOCKET_NAME = "control.sock"
+SOCKET_GLOB = "control*.sock"
 # The systemd unit's RuntimeDirectory=jetbot-rt: where the service's socket is, seen from a
 # shell that has no $RUNTIME_DIRECTORY.
-SERVICE_SOCKET = Path("/run/jetbot-rt") / SOCKET_NAME
+SERVICE_DIR = Path("/run/jetbot-rt")
 _MAX_REQUEST = 64
 CLIENT_TIMEOUT_S = 1.0
 """A connection that has not sent its line within this time is closed."""
 MAX_CLIENTS = 16
 
 
-def default_socket_path() -> Path:
+def default_socket_dir() -> Path:
     """$JETBOT_RT_RUNTIME_DIR, else $RUNTIME_DIRECTORY (systemd), else
-    $XDG_RUNTIME_DIR/jetbot-rt, else /tmp/jetbot-rt-<uid>; the file is ``control.sock``."""
+    $XDG_RUNTIME_DIR/jetbot-rt, else /tmp/jetbot-rt-<uid>."""
     explicit = os.environ.get("JETBOT_RT_RUNTIME_DIR")
     if explicit:
-        return Path(explicit) / SOCKET_NAME
+        return Path(explicit)
     systemd = os.environ.get("RUNTIME_DIRECTORY")
     if systemd:
-        return Path(systemd.split(":")[0]) / SOCKET_NAME  # systemd joins several with ':'
+        return Path(systemd.split(":")[0])  # systemd joins several with ':'
     xdg = os.environ.get("XDG_RUNTIME_DIR")
     if xdg:
-        return Path(xdg) / "jetbot-rt" / SOCKET_NAME
-    return Path(f"/tmp/jetbot-rt-{os.getuid()}") / SOCKET_NAME
+        return Path(xdg) / "jetbot-rt"
+    return Path(f"/tmp/jetbot-rt-{os.getuid()}")
+
+
+def default_socket_path() -> Path:
+    """This process's socket: ``control-<pid>.sock`` in ``default_socket_dir()``."""
+    return default_socket_dir() / f"control-{os.getpid()}.sock"
+
+
+def _remove_dead_sockets(directory: Path) -> None:
+    """Sockets ``control-<pid>.sock`` of processes that are gone (SIGKILL leaves them)."""
+    for path in directory.glob("control-*.sock"):
+        pid = path.name[len("control-"):-len(".sock")]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        except OSError:
+            pass  # alive, another user's
 
 
 def _peer_pid(conn: socket.socket) -> int:
@@ -95,12 +122,10 @@ class ControlServer:
 
     def _start(self) -> None:
         _private_dir(self.path.parent)
+        _remove_dead_sockets(self.path.parent)
         if self.path.exists() or self.path.is_symlink():
             if runtime_answers(self.path):
-                raise UsageError(
-                    f"another jetbot-rt is running (control socket {self.path} answers); "
-                    "stop it first with: jetbot-rt stop"
-                )
+                raise UsageError(f"control socket {self.path} is in use by another process")
             self.path.unlink()  # left by a process that died
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         old_umask = os.umask(0o177)  # the socket file is created 0600, never wider
@@ -210,14 +235,26 @@ class ControlServer:
         conn.send(reply.encode() + b"\n")
 
 
-def _candidates(path: Path | None) -> list[Path]:
+def _candidates(path: Path | None) -> tuple[list[Path], list[str]]:
+    """The sockets to ask, and the directories that could not be listed."""
     if path is not None:
-        return [Path(path)]
-    paths = [default_socket_path()]
+        return [Path(path)], []
+    directories = [default_socket_dir()]
     explicit = os.environ.get("JETBOT_RT_RUNTIME_DIR") or os.environ.get("RUNTIME_DIRECTORY")
-    if not explicit and SERVICE_SOCKET not in paths:
-        paths.append(SERVICE_SOCKET)
-    return paths
+    if not explicit and SERVICE_DIR not in directories:
+        directories.append(SERVICE_DIR)
+    paths: list[Path] = []
+    problems: list[str] = []
+    for directory in directories:
+        try:
+            names = sorted(os.listdir(directory))
+        except FileNotFoundError:
+            continue
+        except OSError as exc:  # the service's directory, seen by another user
+            problems.append(f"{directory}: {exc.strerror or exc}")
+            continue
+        paths += [directory / n for n in names if fnmatch.fnmatch(n, SOCKET_GLOB)]
+    return paths, problems
 
 
 @dataclass
@@ -235,12 +272,13 @@ class StopReply:
 def request_stop(path: Path | None = None, timeout: float = 0.5) -> StopReply:
     """Ask a running runtime to latch its safe stop.
 
-    Without ``path``, tries the default socket, then (unless a runtime directory is set in
-    the environment) the systemd service's. A socket file nobody listens on (a runtime that
-    died) is neither acknowledged nor unreachable.
+    Without ``path``, tries every socket in the default directory, then (unless a runtime
+    directory is set in the environment) in the systemd service's. A socket file nobody
+    listens on (a runtime that died) is neither acknowledged nor unreachable.
     """
-    reply = StopReply()
-    for candidate in _candidates(path):
+    candidates, problems = _candidates(path)
+    reply = StopReply(unreachable=problems)
+    for candidate in candidates:
         if not candidate.exists():
             continue
         client = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)

@@ -264,8 +264,9 @@ class Runtime:
         self.notifier = Notifier.from_env()
         self.config.validate_service_watchdog(self.notifier.watchdog_interval)
         try:
-            # The control socket first: a second jetbot-rt is refused before it opens (and
-            # re-initialises) the motor board that the first one is driving.
+            # The control socket is for `jetbot-rt stop` to talk to this runtime; one per
+            # process. A second runtime on the same motor board is refused by the bus's owner
+            # lock, taken before the board is first written (hal/ownership.py).
             self.control = ControlServer(
                 on_stop=lambda reason: self.latch.trip(reason, fault=False)
             )

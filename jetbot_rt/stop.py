@@ -2,25 +2,45 @@
 
 This is what systemd runs after every end of the service (``ExecStopPost``), a crash or a
 watchdog kill included, so it needs nothing but the config and the I2C bus: no camera, no
-policy, no onnxruntime. The hardware stop is written first, whatever else fails: on the
-configured bus and address if the config can be read (in bounded time), else on the defaults.
-Exit 0 when the motors are off; 1 when the board cannot be reached or a running runtime could
-not be told to stop; 2 when the config is bad (the stop is still written, on the default bus
-and address).
+policy, no onnxruntime. In this order:
+
+1. The hardware stop, first, whatever else fails: every output full-off (one write), on the
+   configured bus and address if the config can be read (in bounded time), else on the
+   defaults.
+2. Every runtime whose control socket it finds is asked to latch its safe stop (an orderly
+   end, exit 0).
+3. The stop again, now with the chip put to SLEEP: every output full-off, then the oscillator
+   off, in one combined I2C transaction. Asleep, the chip holds its outputs off whatever a
+   process writes to its LED registers (``hal/motors.py``). So ``stop`` need not reach a
+   runtime: one it could not talk to finds the chip asleep at its next write, which is a
+   fault, and ends in its safe stop (exit 3).
+4. Confirmation: it waits (at most ``CONFIRM_S``) until no process owns the bus (the owner's
+   ``flock``, ``hal/ownership.py``), then reads MODE1 back. Success only if the chip still
+   sleeps (nobody set it up again) and nobody owns the bus.
+
+Exit 0 when the motors are confirmed off; 1 when the board cannot be reached or the stop
+cannot be confirmed (the line names the process that still owns the bus); 2 when the config
+is bad (the stop is still written, on the default bus and address).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
+from collections.abc import Callable
 
 from jetbot_rt.config import MotorsConfig, load_config
 from jetbot_rt.control import request_stop
 from jetbot_rt.errors import EXIT_USAGE, UsageError, first_line
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
-from jetbot_rt.hal.motors import hardware_stop
+from jetbot_rt.hal.motors import MODE1_SLEEP, hardware_stop, read_mode1, stop_and_sleep
+from jetbot_rt.hal.ownership import bus_device, describe, owner_pids
 
 EXIT_BOARD_UNREACHABLE = 1
+CONFIRM_S = 3.0
+"""How long ``stop`` waits for the bus's owner to end: a runtime it could not reach ends at
+its next write (one period, then its exit: camera child, telemetry)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,13 +57,33 @@ def _motors(path: str | None) -> tuple[MotorsConfig, str | None]:
         return MotorsConfig(), f"config {path}: {type(exc).__name__}: {first_line(exc)}"
 
 
-def _write_stop(motors: MotorsConfig) -> str | None:
+def _write_stop(motors: MotorsConfig, write: Callable[[I2CBus, int], None]) -> str | None:
     """The hardware stop; None when written, else why not."""
     try:
         with I2CBus.open(motors.i2c_bus, motors.i2c_retries, motors.address) as bus:
-            hardware_stop(bus, motors.address)
+            write(bus, motors.address)
     except (UsageError, I2CFault) as exc:
         return str(exc)
+    return None
+
+
+def _confirm(motors: MotorsConfig) -> str | None:
+    """None when the board is off and nobody owns it, else what is wrong."""
+    device = bus_device(motors.i2c_bus)
+    deadline = time.monotonic() + CONFIRM_S
+    while owner_pids(device) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    owners = owner_pids(device)
+    try:
+        with I2CBus.open(motors.i2c_bus, motors.i2c_retries, motors.address) as bus:
+            if not read_mode1(bus, motors.address) & MODE1_SLEEP:
+                stop_and_sleep(bus, motors.address)  # again; someone set the chip up
+                return f"the board was set up again by {describe(owners)}"
+    except (UsageError, I2CFault) as exc:
+        return f"cannot read the board back: {exc}"
+    if owners:
+        return (f"{describe(owners)} still owns the bus {CONFIRM_S:g} s later (the chip "
+                "sleeps, its outputs off; that process did not end)")
     return None
 
 
@@ -56,21 +96,23 @@ def run(args: argparse.Namespace) -> int:
         motors = MotorsConfig()
         exit_code = EXIT_USAGE
     where = f"I2C bus {motors.i2c_bus} address 0x{motors.address:02x}"
-    error = _write_stop(motors)  # first: nothing below may delay it
+    _write_stop(motors, hardware_stop)  # first: nothing may delay it
     reply = request_stop()
+    error = _write_stop(motors, stop_and_sleep)
     if reply:
         print("jetbot-rt stop: the running runtime latched its safe stop")
-        error = _write_stop(motors)  # again, after the runtime's last tick
     if config_error is not None:
         print(f"jetbot-rt stop: {config_error}; using the default bus and address",
               file=sys.stderr)
+    if error is None:
+        error = _confirm(motors)
     if error is not None:
         print(f"jetbot-rt stop: motors NOT confirmed off ({where}): {error}", file=sys.stderr)
         return EXIT_BOARD_UNREACHABLE
-    print(f"jetbot-rt stop: motor outputs off ({where})")
+    print(f"jetbot-rt stop: motor outputs off ({where}); the chip sleeps until a runtime "
+          "sets it up again")
     for problem in reply.unreachable:
-        # A runtime we could not reach would overwrite the stop at its next tick.
-        print(f"jetbot-rt stop: a runtime may still be driving, its control socket "
-              f"{problem} (run as the service user or root)", file=sys.stderr)
-        exit_code = EXIT_BOARD_UNREACHABLE
+        # Informative only: the board is confirmed off and nobody owns it any more.
+        print(f"jetbot-rt stop: note: could not ask a runtime to stop ({problem})",
+              file=sys.stderr)
     return exit_code

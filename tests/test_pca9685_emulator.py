@@ -89,13 +89,30 @@ def test_full_off_wins_over_full_on() -> None:
     assert chip.channel(0).duty == 0.0
 
 
-def test_outputs_are_off_while_the_oscillator_sleeps() -> None:
+def test_asleep_the_outputs_hold_what_they_were_whatever_is_written() -> None:
+    """Datasheet, MODE1 note 4: asleep, the outputs cannot be turned on, off or dimmed."""
     chip = PCA9685Emulator(ADDR)
     write(chip, MODE1, 0x20)
-    write(chip, LED0_ON_L, 0x00, 0x10, 0x00, 0x00)
+    write(chip, LED0_ON_L, 0x00, 0x10, 0x00, 0x00)  # channel 0 full on
     write(chip, MODE1, 0x30)
-    assert chip.channel(0).duty == 0.0
     assert chip.registers[MODE1] & 0x80  # RESTART: PWM was running when put to sleep
+    assert chip.channel(0).duty == 1.0  # put to sleep while on: it stays on
+    write(chip, 0xFD, 0x10)  # ALL_LED_OFF_H full off: the registers change, not the outputs
+    assert chip.channel(0).full_off and chip.channel(0).duty == 1.0
+    write(chip, MODE1, 0x20)  # awake: the registers drive again
+    assert chip.all_off()
+
+
+def test_off_then_asleep_no_led_write_turns_an_output_on() -> None:
+    chip = PCA9685Emulator(ADDR)
+    write(chip, MODE1, 0x20)
+    write(chip, LED0_ON_L, 0x00, 0x00, 0x00, 0x08)  # channel 0 at 50 %
+    write(chip, 0xFD, 0x10)
+    write(chip, MODE1, 0x30)
+    for payload in ((0x00, 0x10, 0x00, 0x00), (0x00, 0x00, 0x9A, 0x01)):
+        write(chip, LED0_ON_L + 4, *payload)  # a runtime's next tick, on channel 1
+        assert chip.all_off(), chip.duties()
+    assert chip.channel(1).on_count == 0 and chip.channel(1).off_count == 0x19A
 
 
 def test_injected_faults_and_absent_chip_raise_oserror() -> None:

@@ -63,15 +63,38 @@ def test_a_stale_socket_file_is_replaced(sock_path) -> None:
         server.close()
 
 
-def test_a_second_live_runtime_is_refused(sock_path) -> None:
+def test_a_live_socket_is_not_taken_over(sock_path) -> None:
     first = ControlServer(lambda _r: None, sock_path)
     first.start()
     try:
-        with pytest.raises(UsageError, match="another jetbot-rt is running"):
+        with pytest.raises(UsageError, match="in use by another process"):
             ControlServer(lambda _r: None, sock_path).start()
         assert request_stop(sock_path)  # the first still serves
     finally:
         first.close()
+
+
+def test_runtimes_side_by_side_are_all_asked_to_stop(tmp_path, monkeypatch) -> None:
+    """One socket per runtime (``control-<pid>.sock``): two simulations do not refuse each
+    other, and ``stop`` asks both. A dead runtime's socket is cleared by the next start."""
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path / "run"))
+    reasons: list[str] = []
+    servers = [ControlServer(reasons.append, tmp_path / "run" / name)
+               for name in ("control-other.sock", f"control-{2**22 + 1}.sock")]  # no such pid
+    mine = ControlServer(reasons.append)
+    assert mine.path == tmp_path / "run" / f"control-{os.getpid()}.sock"
+    try:
+        for server in servers:
+            server.start()
+        servers[1]._sock.close()  # noqa: SLF001 - that runtime died: its file stays
+        mine.start()  # clears the dead one's file
+        assert not servers[1].path.exists()
+        reply = request_stop()
+        assert sorted(reply.acknowledged) == sorted([servers[0].path, mine.path])
+        assert len(reasons) == 2 and not reply.unreachable
+    finally:
+        for server in (*servers, mine):
+            server.close()
 
 
 def test_unknown_requests_get_an_error_and_do_not_stop(sock_path) -> None:
@@ -91,13 +114,14 @@ def test_unknown_requests_get_an_error_and_do_not_stop(sock_path) -> None:
 def test_default_socket_path_precedence(monkeypatch) -> None:
     for name in ("JETBOT_RT_RUNTIME_DIR", "RUNTIME_DIRECTORY", "XDG_RUNTIME_DIR"):
         monkeypatch.delenv(name, raising=False)
-    assert default_socket_path() == Path(f"/tmp/jetbot-rt-{os.getuid()}/control.sock")
+    mine = f"control-{os.getpid()}.sock"
+    assert default_socket_path() == Path(f"/tmp/jetbot-rt-{os.getuid()}") / mine
     monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/7")
-    assert default_socket_path() == Path("/run/user/7/jetbot-rt/control.sock")
+    assert default_socket_path() == Path("/run/user/7/jetbot-rt") / mine
     monkeypatch.setenv("RUNTIME_DIRECTORY", "/run/jetbot-rt:/run/other")
-    assert default_socket_path() == Path("/run/jetbot-rt/control.sock")
+    assert default_socket_path() == Path("/run/jetbot-rt") / mine
     monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", "/x")
-    assert default_socket_path() == Path("/x/control.sock")
+    assert default_socket_path() == Path("/x") / mine
 
 
 # ---- jetbot-rt stop ----------------------------------------------------------------------
@@ -190,9 +214,10 @@ def test_stop_reports_a_runtime_it_could_not_reach(tmp_path) -> None:
         result = stop_command(tmp_path)
     finally:
         silent.close()
-    assert result.returncode == 1
-    assert "a runtime may still be driving" in result.stderr
-    assert chip.refresh().all_off()  # the hardware stop was still written
+    # The board is off and asleep and nobody owns the bus: confirmed; the socket is a note.
+    assert result.returncode == 0, result.stderr
+    assert "note: could not ask a runtime to stop" in result.stderr
+    assert chip.refresh().all_off() and chip.sleeping
 
 
 class TestStopNeverReportsAnOffItCouldNotWrite:

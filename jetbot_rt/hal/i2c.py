@@ -66,6 +66,8 @@ class I2CBus:
         """Transfers that failed with ``OSError`` and were tried again (ridden-through noise
         and the failed attempts before an ``I2CFault`` alike): the run summary reports it."""
         self._lock = threading.Lock()
+        self.owner: Any = None
+        """The ``BoardLock`` of a bus opened to drive (``open_drive``); released by deinit."""
 
     @classmethod
     def open(cls, bus_number: int, retries: int = 3, emulated_address: int = 0x60) -> I2CBus:
@@ -130,6 +132,24 @@ class I2CBus:
 
         self._retry(address, transfer)
 
+    def transfer(self, address: int, writes: list[bytes], read: int = 0) -> bytes:
+        """Several writes (and an optional read) in one combined transaction: repeated starts,
+        no STOP between them, so no other master's transfer can land in between."""
+        from smbus2 import i2c_msg
+
+        result = b""
+
+        def run() -> None:
+            nonlocal result
+            messages = [i2c_msg.write(address, data) for data in writes]
+            if read:
+                messages.append(i2c_msg.read(address, read))
+            self.smbus.i2c_rdwr(*messages)
+            result = bytes(messages[-1]) if read else b""
+
+        self._retry(address, run)
+        return result
+
     def scan(self) -> list[int]:
         found = []
         for address in range(0x03, 0x78):
@@ -142,6 +162,9 @@ class I2CBus:
 
     def deinit(self) -> None:
         self.smbus.close()
+        if self.owner is not None:
+            self.owner.release()
+            self.owner = None
 
     def __enter__(self) -> I2CBus:
         return self

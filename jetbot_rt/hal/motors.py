@@ -9,6 +9,13 @@ hardware stop they share.
 
 The hardware stop is one write: ALL_LED_OFF_H (0xFD) <- full-off bit (0x10), which sets the
 full-off bit of every output at once and takes precedence over any full-on or PWM setting.
+
+``jetbot-rt stop`` also puts the chip to SLEEP, in the same combined transaction, after the
+full-off: while the oscillator is off "the LEDn outputs cannot be turned on, off or
+dimmed/blinked" (datasheet, MODE1 note 4), so a process that keeps writing duties to the LED
+registers cannot drive the motors again; only a write to MODE1 (a drive being set up) wakes
+it. A drive checks MODE1 in every write: a chip asleep that it did not put to sleep (a stop
+from elsewhere, or a reset) is a ``Fault``, so that runtime ends in its safe stop.
 """
 
 from __future__ import annotations
@@ -38,11 +45,34 @@ FULL_BIT = 0x10
 OSCILLATOR_HZ = 25_000_000
 
 HARDWARE_STOP = bytes((ALL_LED_OFF_H, FULL_BIT))
+SLEEP = bytes((MODE1, MODE1_SLEEP | MODE1_AI))
 
 
 def hardware_stop(bus: I2CBus, address: int) -> None:
     """Turn every PCA9685 output off in one I2C write. Raises ``I2CFault``."""
     bus.writeto(address, HARDWARE_STOP)
+
+
+def stop_and_sleep(bus: I2CBus, address: int) -> None:
+    """Every output full-off, then the oscillator off, in one combined transaction (no other
+    write can land between the two, which could leave an output held on). Raises ``I2CFault``."""
+    bus.transfer(address, [HARDWARE_STOP, SLEEP])
+
+
+class BoardAsleep(Fault):
+    """The chip sleeps though this drive did not put it to sleep: another process stopped it
+    (``jetbot-rt stop``) or it was reset."""
+
+    def __init__(self, bus: I2CBus, address: int) -> None:
+        super().__init__(
+            f"motor board on I2C bus {bus.bus_number} at 0x{address:02x} is asleep: stopped by "
+            "another process (jetbot-rt stop) or reset"
+        )
+
+
+def _check_awake(mode1: int, bus: I2CBus, address: int) -> None:
+    if mode1 & MODE1_SLEEP:
+        raise BoardAsleep(bus, address)
 
 
 def read_mode1(bus: I2CBus, address: int) -> int:
@@ -97,7 +127,11 @@ class WaveshareDrive(Drive):
         for (forward, reverse), duty in ((self.LEFT, left), (self.RIGHT, right)):
             duties[forward if duty > 0 else reverse] = abs(duty)
         payload = bytes((LED0_ON_L,)) + b"".join(channel_registers(d) for d in duties)
-        self.bus.writeto(self.address, payload)
+        # The duties, then MODE1 read back, in one transaction: asleep, the chip holds its
+        # outputs off whatever the LED registers say, and this drive must stop.
+        mode1 = self.bus.transfer(self.address, [payload, bytes((MODE1,))], read=1)
+        if any(duties):
+            _check_awake(mode1[0], self.bus, self.address)
 
     def stop(self) -> None:
         hardware_stop(self.bus, self.address)
@@ -151,6 +185,8 @@ class MotorHatDrive(Drive):
 
     def write(self, left: float, right: float) -> None:
         duties = _checked(left, right)
+        if any(duties):
+            _check_awake(read_mode1(self.bus, self.address), self.bus, self.address)
         if self._enables_off and any(duties):
             # The hardware stop also turned off the PWM (enable) inputs MotorKit set once.
             for number in self._motor_numbers:
@@ -173,7 +209,15 @@ def open_drive(motors: MotorsConfig) -> Drive:
     Raises ``UsageError`` when the bus cannot be opened or nothing answers at the address
     (the motors were never moved), ``I2CFault`` when the board fails during set-up.
     """
-    bus = I2CBus.open(motors.i2c_bus, motors.i2c_retries, emulated_address=motors.address)
+    from jetbot_rt.hal.ownership import BoardLock
+
+    owner = BoardLock.acquire(motors.i2c_bus)  # before the first write: one owner per bus
+    try:
+        bus = I2CBus.open(motors.i2c_bus, motors.i2c_retries, emulated_address=motors.address)
+    except BaseException:
+        owner.release()
+        raise
+    bus.owner = owner
     try:
         read_mode1(bus, motors.address)
     except I2CFault as exc:

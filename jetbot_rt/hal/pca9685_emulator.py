@@ -5,6 +5,13 @@ unless MODE1.SLEEP is set, as on the chip), the 16 LEDn_{ON,OFF}_{L,H} registers
 auto-increment (MODE1.AI), the ALL_LED registers (a write loads that register of every
 channel; they read back as 0), and the full-on / full-off bits (full-off wins).
 
+SLEEP, as the datasheet states it (MODE1, note 4: "When the oscillator is off (Sleep mode) the
+LEDn outputs cannot be turned on, off or dimmed/blinked"): the outputs hold what they were
+when the oscillator stopped, whatever is written to the LED registers while it sleeps (the
+registers change, the outputs do not); waking makes the registers drive the outputs again.
+This is the stricter of the two readings (the other: every output off while asleep): a
+stop that put the chip to sleep before turning the outputs off would leave them on here.
+
 With ``state_file`` the registers live in a JSON file shared by every process that opens it:
 each transaction takes an ``flock`` on ``<state_file>.lock``, loads, applies and writes the
 state back with an atomic replace, so a writer killed by SIGKILL leaves either the old or the
@@ -72,7 +79,8 @@ class ChannelOutput:
     full_off: bool
     duty: float
     """Effective fraction of the period the output is high: 0 when full-off (which wins over
-    full-on) or while the oscillator sleeps, 1 when full-on, else (off - on) mod 4096 / 4096."""
+    full-on), 1 when full-on, else (off - on) mod 4096 / 4096; while the oscillator sleeps,
+    what the output was when it stopped."""
 
 
 class PCA9685Emulator:
@@ -87,6 +95,8 @@ class PCA9685Emulator:
         self.bytes = 0
         self.peak_duty = [0.0] * CHANNELS
         """Highest effective duty each output has had: proves a pulse that is over by now."""
+        self.held = [0.0] * CHANNELS
+        """The outputs while the oscillator sleeps: what they were when it stopped."""
         self._pointer = 0
         self._state_file = Path(state_file) if state_file is not None else None
         if self._state_file is not None:
@@ -123,6 +133,7 @@ class PCA9685Emulator:
         self.transactions = state.get("transactions", 0)
         self.bytes = state.get("bytes", 0)
         self.peak_duty = list(state.get("peak_duty", [0.0] * CHANNELS))
+        self.held = list(state.get("held", [0.0] * CHANNELS))
         self._pointer = state.get("pointer", 0)
 
     def _save(self) -> None:
@@ -135,6 +146,7 @@ class PCA9685Emulator:
             "transactions": self.transactions,
             "bytes": self.bytes,
             "peak_duty": self.peak_duty,
+            "held": self.held,
             "pointer": self._pointer,
         }
         fd, tmp = tempfile.mkstemp(dir=self._state_file.parent, prefix=".pca9685-")
@@ -264,6 +276,7 @@ class PCA9685Emulator:
                 restart = 0  # writing 1 clears RESTART
             if value & MODE1_SLEEP and was_active:
                 restart = MODE1_RESTART  # PWM was running when put to sleep
+                self.held = self.duties()  # the outputs freeze as they are
             regs[MODE1] = (value & ~MODE1_RESTART & 0xFF) | restart
         elif register == PRE_SCALE:
             if regs[MODE1] & MODE1_SLEEP:
@@ -293,7 +306,9 @@ class PCA9685Emulator:
         off_count = ((off_h & 0x0F) << 8) | off_l
         full_on = bool(on_h & FULL_BIT)
         full_off = bool(off_h & FULL_BIT)
-        if full_off or self.sleeping:
+        if self.sleeping:
+            duty = self.held[index]
+        elif full_off:
             duty = 0.0
         elif full_on:
             duty = 1.0

@@ -1,0 +1,125 @@
+"""One owner per motor bus: an advisory ``flock`` on the bus's device node.
+
+Every process that may write a non-zero duty to a board takes an exclusive ``flock`` on
+``/dev/i2c-N`` (with the emulator: on ``<state file>.owner``) before it writes anything, and
+holds it until it exits; the kernel drops it when the process dies, SIGKILL included. The lock
+is on the device node itself, so it does not depend on the environment, the user or a runtime
+directory: anyone who can open the bus to write it can open it to lock it, and two processes
+that start at the same moment cannot both get it. ``jetbot-rt stop`` takes no lock (it always
+writes the stop); it reads the owner's pid from ``/proc/locks`` to say who drives.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+from pathlib import Path
+
+from jetbot_rt.errors import UsageError
+
+_held: dict[str, BoardLock] = {}
+
+
+def bus_device(bus_number: int) -> Path:
+    """What the owner locks: the bus's device node, or the emulator's ``.owner`` file."""
+    from jetbot_rt.hal.i2c import EMULATOR_ENV
+
+    state_file = os.environ.get(EMULATOR_ENV)
+    if state_file:
+        return Path(state_file + ".owner")
+    return Path(f"/dev/i2c-{bus_number}")
+
+
+def _open(path: Path) -> int:
+    flags = os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK | os.O_NOCTTY
+    if path.name.endswith(".owner"):  # the emulator's: create it, lockable by every user
+        old = os.umask(0)
+        try:
+            return os.open(path, flags | os.O_CREAT, 0o666)
+        finally:
+            os.umask(old)
+    return os.open(path, flags)
+
+
+def owner_pids(path: Path) -> list[int]:
+    """Pids holding a ``flock`` on ``path``, from ``/proc/locks`` (empty if none or unknown)."""
+    try:
+        st = path.stat()
+        locks = Path("/proc/locks").read_text()
+    except OSError:
+        return []
+    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    pids = []
+    for line in locks.splitlines():
+        fields = line.split()
+        # "1: FLOCK  ADVISORY  WRITE 1234 fe:00:56 0 EOF"; waiters carry "->" and are not owners
+        if len(fields) >= 6 and fields[1] == "FLOCK" and fields[5] == key:
+            pid = int(fields[4])
+            if pid > 0:
+                pids.append(pid)
+    return pids
+
+
+def describe(pids: list[int]) -> str:
+    """``pid 1234 (jetbot-rt run --backend real)``, or ``another process``."""
+    if not pids:
+        return "another process (its pid is not visible here)"
+    pid = pids[0]
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(
+            errors="replace").strip()
+    except OSError:
+        cmd = ""
+    words = cmd.split()
+    if len(words) > 1 and "jetbot-rt" in words[1]:
+        words = words[1:]  # "python .../jetbot-rt run ..." reads as "jetbot-rt run ..."
+    shown = " ".join([Path(words[0]).name, *words[1:4]]) if words else ""
+    return f"pid {pid}" + (f" ({shown})" if shown else "")
+
+
+class BoardLock:
+    """The exclusive ``flock`` on one bus; ``release()`` or the process's end frees it."""
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path = path
+        self._fd: int | None = fd
+        self._users = 1
+
+    @classmethod
+    def acquire(cls, bus_number: int) -> BoardLock:
+        """Own bus ``bus_number`` or raise ``UsageError`` naming the owner. Re-entrant within
+        a process (``check --spin`` owns the bus before it opens the drive)."""
+        path = bus_device(bus_number)
+        held = _held.get(str(path))
+        if held is not None and held._fd is not None:
+            held._users += 1
+            return held
+        try:
+            fd = _open(path)
+        except OSError as exc:
+            raise UsageError(
+                f"cannot open {path}: {exc.strerror or exc} "
+                "(is the bus enabled and is this user in the i2c group?)"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise UsageError(f"cannot lock {path}: {exc.strerror or exc}") from None
+            raise UsageError(
+                f"the motor board on I2C bus {bus_number} is driven by "
+                f"{describe(owner_pids(path))}; stop it first (jetbot-rt stop)"
+            ) from None
+        lock = cls(path, fd)
+        _held[str(path)] = lock
+        return lock
+
+    def release(self) -> None:
+        self._users -= 1
+        if self._users > 0 or self._fd is None:
+            return
+        os.close(self._fd)  # closing the only descriptor drops the flock
+        self._fd = None
+        _held.pop(str(self.path), None)
