@@ -166,6 +166,8 @@ def print_table(rows: list[Row]) -> None:
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     config.validate()
+    if args.policy == "":
+        raise UsageError("--policy must be a file name, not empty")
     if args.frames < 2:
         raise UsageError(f"--frames must be at least 2, got {args.frames}")
     if args.spin:

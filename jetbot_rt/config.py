@@ -106,8 +106,8 @@ class LoopConfig:
 
 @dataclass
 class PolicyConfig:
-    path: str | None = None
-    """ONNX file; default: the policy bundled in the package."""
+    path: str | None = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    """ONNX file; default (key absent): the policy bundled in the package."""
     layout: str | None = field(default=None, metadata=_one_of(LAYOUTS))
     """Override the input layout read from the model."""
     color_order: str | None = field(default=None, metadata=_one_of(COLOR_ORDERS))
@@ -172,8 +172,9 @@ class CameraConfig:
 
 @dataclass
 class TelemetryConfig:
-    path: str | None = None
-    """JSON Lines file, one record per tick plus events; none by default."""
+    path: str | None = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    """JSON Lines file, one record per tick plus events; none by default. A run that starts
+    moves the previous file to ``<path>.1``; a start refused before that only appends."""
 
 
 @dataclass

@@ -52,6 +52,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gui", action="store_true", help="open PyBullet's window (sim only)")
 
 
+def same_file(a: str, b: str) -> bool:
+    """Whether two paths name one file (a link, ``./x`` and ``x``); for a path that does
+    not exist yet, whether they resolve to the same name."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
 def build_config(args: argparse.Namespace) -> Config:
     config = load_config(args.config)
     overrides = [
@@ -68,6 +77,12 @@ def build_config(args: argparse.Namespace) -> Config:
             set_value(getattr(config, section), section, key, value)
         except UsageError as exc:
             raise UsageError(f"{flag}: {exc}") from None
+    telemetry = config.telemetry.path
+    policy = config.policy.path or str(bundled_policy_path())
+    for what, other in (("--policy", policy), ("--config", args.config)):
+        if telemetry and other and same_file(telemetry, other):
+            raise UsageError(f"--telemetry {telemetry} is the {what} file; "
+                             "telemetry would overwrite it")
     if args.duration is not None and not args.duration > 0:
         raise UsageError(f"--duration must be > 0, got {args.duration:g}")
     if args.gui and args.backend != "sim":
@@ -318,6 +333,7 @@ class Runtime:
             on_tick_done=lambda now: self.notifier.tick(now, self._status),
             observers=[self.recorder.observe] if self.recorder is not None else [],
         )
+        self.telemetry.rotate()  # the run is known to start: the previous file becomes .1
         self.telemetry.event(
             "start", backend=self.args.backend, policy=policy.describe(),
             rate_hz=loop_cfg.rate_hz, max_speed=self.actions.max_speed,

@@ -16,6 +16,11 @@ the writer checks the link count before each record and treats that the same.
 
 Records are strict JSON: a non-finite float (NaN, ±Infinity) is written as ``null``; the event
 that reports a fault keeps the value in its ``reason`` text.
+
+The previous run's telemetry is evidence (of a crash, say): opening never truncates. The file
+is opened for appending, so a start refused before it drives adds its ``end`` record after the
+previous run's; a run that starts (``rotate()``, at the ``start`` event) moves the previous
+file to ``<path>.1`` (replacing the one before) and writes a new one.
 """
 
 from __future__ import annotations
@@ -61,7 +66,7 @@ def dumps(record: dict[str, Any]) -> str:
 
 def _open(path: Path) -> int:
     """Open for writing without ever blocking: a FIFO without a reader is refused (ENXIO)."""
-    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
     try:
         fd = os.open(path, flags, 0o644)
     except OSError as exc:
@@ -74,6 +79,10 @@ def _open(path: Path) -> int:
     # would cut records in half.
     os.set_blocking(fd, True)
     return fd
+
+
+_ROTATE: dict[str, Any] = {}
+"""Queue marker: the writer starts a new file here (``rotate``)."""
 
 
 class Telemetry:
@@ -119,6 +128,13 @@ class Telemetry:
         self.record(record)
         return record
 
+    def rotate(self) -> None:
+        """The run starts: the writer moves a regular file that holds earlier records to
+        ``<path>.1`` and goes on in a new file (a device or a pipe is kept as it is)."""
+        if self.enabled:
+            self._queue.append(_ROTATE)
+            self._wake.set()
+
     def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
         """Let the writer drain for at most ``timeout`` s; what is left is counted as lost."""
         writer = self._writer
@@ -147,6 +163,9 @@ class Telemetry:
                 if record is None:
                     os.close(self._fd)
                     return
+                if record is _ROTATE:
+                    self._rotate()
+                    continue
                 if self.error is not None:
                     self._failed += 1
                     continue
@@ -165,6 +184,19 @@ class Telemetry:
         while view:
             written = os.write(self._fd, view)
             view = view[written:]
+
+    def _rotate(self) -> None:
+        assert self._fd is not None and self.path is not None
+        if not self._regular or self.error is not None or os.fstat(self._fd).st_size == 0:
+            return
+        try:
+            os.replace(self.path, self.path.with_name(self.path.name + ".1"))
+            fd = _open(self.path)
+        except (OSError, UsageError) as exc:
+            self._report(f"cannot move the previous file aside: {exc}")
+            return
+        os.close(self._fd)
+        self._fd = fd
 
     def _report(self, error: str) -> None:
         if self.error is None:

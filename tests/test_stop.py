@@ -86,7 +86,7 @@ def test_runtimes_side_by_side_are_all_asked_to_stop(tmp_path, monkeypatch) -> N
     try:
         for server in servers:
             server.start()
-        servers[1]._sock.close()  # noqa: SLF001 - that runtime died: its file stays
+        servers[1]._sock.close()  # that runtime died: its file stays
         mine.start()  # clears the dead one's file
         assert not servers[1].path.exists()
         reply = request_stop()
