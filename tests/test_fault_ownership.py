@@ -33,13 +33,17 @@ from jetbot_rt.hal.i2c import EMULATOR_ENV
 OFF_AFTER_STOP_S = 10.0
 """Bound asserted on: ``jetbot-rt stop`` started -> every output of the board off (an
 interpreter start on a loaded machine; measured figures in docs/SAFETY.md)."""
+LOOP = "[loop]\nwatchdog_timeout = 0.5\nmax_frame_age = 0.5\n"
+"""These cases are about who drives, not the watchdog: generous thresholds keep a loaded
+machine (a stop's interpreter start next to the runtime) from ending a run for another cause."""
 ASLEEP = "is asleep: stopped by another process (jetbot-rt stop) or reset"
 
 
 def start_real(tmp: Path, **kwargs) -> tuple[RuntimeProcess, str]:
     mark = f"fm{uuid.uuid4().hex[:12]}"
     policy = policy_models.constant(tmp / "policy.onnx", MU)
-    rt = RuntimeProcess(tmp, "real", policy, config=real_config(live_camera(mark)), **kwargs)
+    rt = RuntimeProcess(tmp, "real", policy, config=real_config(live_camera(mark)) + LOOP,
+                        **kwargs)
     return rt.start(), mark
 
 
@@ -144,10 +148,7 @@ def test_stop_never_reports_success_while_a_runtime_drives(tmp_path: Path, momen
     assert reported_off and not driven_after, "stop said off while a runtime drove"
     assert runtime_gone or wait_for(lambda: rt.process.poll() is not None, 0) is not None
     assert result.returncode == 3, result.stdout + result.stderr
-    # Its first write after the stop finds the chip asleep. (On a loaded machine the first
-    # tick right after start-up can also trip the 0.1 s watchdog first: a safe stop as well.)
-    reason = result.records[-1]["reason"]
-    assert ASLEEP in reason or reason.startswith("watchdog"), reason
+    assert ASLEEP in result.records[-1]["reason"]  # its first write after the stop
     assert "Traceback" not in result.stderr
     assert rt.board_off() and rt.chip.sleeping
     assert_no_gst_left(mark)
@@ -256,7 +257,7 @@ def test_two_runtimes_started_at_once_exactly_one_drives(tmp_path: Path, attempt
         root = tmp_path / name
         root.mkdir()
         runs.append(RuntimeProcess(root, "real", policy,
-                                   config=real_config(live_camera(mark + name))))
+                                   config=real_config(live_camera(mark + name)) + LOOP))
     a, b = runs
     b.env[EMULATOR_ENV] = a.env[EMULATOR_ENV]  # the same board, another runtime directory
     ended = {}
