@@ -35,7 +35,7 @@ from jetbot_rt.control import request_stop
 from jetbot_rt.errors import EXIT_USAGE, UsageError, first_line
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
 from jetbot_rt.hal.motors import MODE1_SLEEP, hardware_stop, read_mode1, stop_and_sleep
-from jetbot_rt.hal.ownership import bus_device, describe, owner_pids
+from jetbot_rt.hal.ownership import bus_device, describe, owned, owner_pids
 
 EXIT_BOARD_UNREACHABLE = 1
 CONFIRM_S = 3.0
@@ -71,8 +71,9 @@ def _confirm(motors: MotorsConfig) -> str | None:
     """None when the board is off and nobody owns it, else what is wrong."""
     device = bus_device(motors.i2c_bus)
     deadline = time.monotonic() + CONFIRM_S
-    while owner_pids(device) and time.monotonic() < deadline:
+    while owned(device) and time.monotonic() < deadline:
         time.sleep(0.02)
+    still_owned = owned(device)
     owners = owner_pids(device)
     try:
         with I2CBus.open(motors.i2c_bus, motors.i2c_retries, motors.address) as bus:
@@ -81,7 +82,7 @@ def _confirm(motors: MotorsConfig) -> str | None:
                 return f"the board was set up again by {describe(owners)}"
     except (UsageError, I2CFault) as exc:
         return f"cannot read the board back: {exc}"
-    if owners:
+    if still_owned:
         return (f"{describe(owners)} still owns the bus {CONFIRM_S:g} s later (the chip "
                 "sleeps, its outputs off; that process did not end)")
     return None

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import os
 import subprocess
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from runner import JETBOT_RT, wait_for
+from test_fault_matrix import record_figures
 
 from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
@@ -108,12 +110,15 @@ def test_stop_writes_the_hardware_stop_whatever_the_config(tmp_path: Path, kind:
     make, expected = BAD[kind]
     chip = driven_board(tmp_path)
     config = make(tmp_path)
+    t0 = time.monotonic()
     proc = subprocess.Popen([JETBOT_RT, "stop", "--config", str(config)], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env=env_for(tmp_path), cwd=tmp_path)
     try:
-        assert wait_for(lambda: chip.refresh().all_off(), BOARD_OFF_S, 0.02) is not None
+        t_off = wait_for(lambda: chip.refresh().all_off(), BOARD_OFF_S, 0.02)
+        assert t_off is not None
         out, err = proc.communicate(timeout=TIMEOUT_S)
+        t_done = time.monotonic()
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -123,6 +128,8 @@ def test_stop_writes_the_hardware_stop_whatever_the_config(tmp_path: Path, kind:
     assert "using the default bus and address" in line
     assert "motor outputs off (I2C bus 1 address 0x60)" in out
     assert chip.refresh().all_off(), chip.duties()
+    record_figures(f"stop-config-{kind}", exit_code=proc.returncode,
+                   stop_to_board_off_s=round(t_off - t0, 4), stop_cmd_s=round(t_done - t0, 4))
 
 
 @pytest.mark.parametrize(("command", "kind"), [

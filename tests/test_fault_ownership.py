@@ -26,7 +26,14 @@ from pathlib import Path
 import policy_models
 import pytest
 from runner import JETBOT_RT, RuntimeProcess, processes_with, wait_for
-from test_fault_matrix import MU, assert_no_gst_left, live_camera, needs_gst, real_config
+from test_fault_matrix import (
+    MU,
+    assert_no_gst_left,
+    live_camera,
+    needs_gst,
+    real_config,
+    record_figures,
+)
 
 from jetbot_rt.hal.i2c import EMULATOR_ENV
 
@@ -110,7 +117,9 @@ def test_stop_defeats_a_runtime_it_cannot_talk_to(tmp_path: Path, variant: str) 
     assert end["event"] == "end" and ASLEEP in end["reason"], end
     assert rt.board_off() and rt.chip.sleeping
     assert_no_gst_left(mark)
-    print(f"{variant}: stop->off {t_off - t0:.3f} s, stop->reported {t_reported - t0:.3f} s")
+    record_figures(f"stop-unreachable-{variant}-real", exit_code=result.returncode,
+                   stop_to_board_off_s=round(t_off - t0, 4),
+                   stop_to_reported_s=round(t_reported - t0, 4))
 
 
 MOMENTS = {
@@ -152,7 +161,8 @@ def test_stop_never_reports_success_while_a_runtime_drives(tmp_path: Path, momen
     assert "Traceback" not in result.stderr
     assert rt.board_off() and rt.chip.sleeping
     assert_no_gst_left(mark)
-    print(f"{moment}: stop reported after {t_reported - t0:.3f} s")
+    record_figures(f"stop-while-{moment}-real", exit_code=result.returncode,
+                   stop_to_reported_s=round(t_reported - t0, 4))
 
 
 HOLDER = """

@@ -61,6 +61,22 @@ def owner_pids(path: Path) -> list[int]:
     return pids
 
 
+def owned(path: Path) -> bool:
+    """Whether some process holds the owner lock: a shared ``flock`` attempt that fails.
+    Authoritative where ``/proc/locks`` cannot name the holder (another pid namespace)."""
+    try:
+        fd = _open(path)
+    except OSError:
+        return False  # no such bus: nobody can own it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        return exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN)
+    finally:
+        os.close(fd)  # drops the shared lock if it was granted
+    return False
+
+
 def describe(pids: list[int]) -> str:
     """``pid 1234 (jetbot-rt run --backend real)``, or ``another process``."""
     if not pids:
