@@ -12,6 +12,9 @@ run the installed ``jetbot-rt`` in subprocesses, so the mutant must be what thos
 Each of the ``--jobs`` workers therefore has its own copy of the repository and a venv whose
 ``jetbot_rt`` and console scripts are that copy's (the dependencies are this interpreter's).
 
+No mutant is made inside a type annotation: these modules never evaluate them (``from
+__future__ import annotations``), so ``str | None`` -> ``str - None`` is no bug.
+
 Per mutant, only the tests of its module run (``MODULES``: fast ones first, with ``-x``; the
 slow end-to-end ones only for a mutant the fast ones let through), with a timeout that counts
 as killed (cosmic-ray's rule: a hang is caught). Not part of CI. Mutants are sampled
@@ -116,6 +119,23 @@ def _removable(node) -> bool:  # type: ignore[no-untyped-def]
 OUR_OPERATORS = {"jetbot/RemoveStatement": RemoveStatement}
 
 
+def _in_annotation(node) -> bool:  # type: ignore[no-untyped-def]
+    """Inside a type annotation: never evaluated in these modules (``from __future__ import
+    annotations``), so a mutant there (``str | None`` -> ``str - None``) is not a bug."""
+    child, parent = node, node.parent
+    while parent is not None:
+        siblings = parent.children
+        if parent.type == "tfpdef" and child is siblings[2]:
+            return True
+        if parent.type == "annassign" and child is siblings[1]:
+            return True
+        if parent.type == "funcdef":
+            index = siblings.index(child)
+            return index > 0 and getattr(siblings[index - 1], "value", None) == "->"
+        child, parent = parent, parent.parent
+    return False
+
+
 def operator_instance(name: str) -> Operator:
     if name in OUR_OPERATORS:
         return OUR_OPERATORS[name]()
@@ -152,7 +172,8 @@ def enumerate_mutants(module: str) -> list[Mutant]:
         occurrence = 0
         for node in ast_nodes(tree):
             for start, _end in operator.mutation_positions(node):
-                mutants.append(Mutant(module, name, occurrence, start[0]))
+                if not _in_annotation(node):
+                    mutants.append(Mutant(module, name, occurrence, start[0]))
                 occurrence += 1
     return mutants
 
