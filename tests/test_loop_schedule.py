@@ -50,10 +50,11 @@ class SimulatedTimeLatch(SafeStopLatch):
 
 
 class FreshCamera(Camera):
-    """Always a frame captured at the current simulated time."""
+    """Always a frame captured ``age`` ago in simulated time."""
 
-    def __init__(self, clock: SimulatedClock) -> None:
+    def __init__(self, clock: SimulatedClock, age: float = 0.0) -> None:
         self.clock = clock
+        self.age = age
         self.index = 0
         self.image = np.zeros((4, 4, 3), np.uint8)
 
@@ -62,7 +63,7 @@ class FreshCamera(Camera):
 
     def read(self) -> Frame:
         self.index += 1
-        return Frame(self.image, self.clock(), self.index)
+        return Frame(self.image, self.clock() - self.age, self.index)
 
     def stop(self) -> None:
         pass
@@ -84,18 +85,39 @@ class TimedPolicy:
         return np.array([0.5, 0.5])
 
 
+class TimedDrive(WaveshareDrive):
+    """The Waveshare driver on the emulated chip; each write takes ``write_s`` of simulated
+    time (the I2C transfer)."""
+
+    def __init__(self, chip: PCA9685Emulator, clock: SimulatedClock, write_s: float) -> None:
+        super().__init__(I2CBus(chip, 1), 0x60, 1600.0)
+        self.clock = clock
+        self.write_s = write_s
+
+    def write(self, left: float, right: float) -> None:
+        super().write(left, right)
+        self.clock.now += self.write_s
+
+
 def run_loop(durations: dict[int, float], duration: float, late: dict[int, float] | None = None,
-             telemetry: Telemetry | None = None
+             telemetry: Telemetry | None = None, frame_age: float = 0.0, write_s: float = 0.0,
+             advance_s: float | None = None,
              ) -> tuple[ControlLoop, TimedPolicy, SimulatedTimeLatch, PCA9685Emulator]:
     clock = SimulatedClock()
     latch = SimulatedTimeLatch(clock, late)
     chip = PCA9685Emulator(0x60)
-    drive = GuardedDrive(WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0), latch)
+    drive = GuardedDrive(TimedDrive(chip, clock, write_s), latch)
     policy = TimedPolicy(clock, durations)
+    advance = None
+    if advance_s is not None:
+        def advance(_dt: float) -> None:  # the sim's step, outside the timed part of the tick
+            clock.now += advance_s
+    if telemetry is not None:
+        telemetry.t0 = 0.0  # records' t on the simulated clock
     loop = ControlLoop(
-        camera=FreshCamera(clock), policy=policy, actions=ActionPipeline(), drive=drive,
-        latch=latch, watchdog=None, telemetry=telemetry or Telemetry(None), period=PERIOD,
-        max_frame_age=1000.0, clock=clock,
+        camera=FreshCamera(clock, frame_age), policy=policy, actions=ActionPipeline(),
+        drive=drive, latch=latch, watchdog=None, telemetry=telemetry or Telemetry(None),
+        period=PERIOD, max_frame_age=1000.0, advance=advance, clock=clock,
     )
     loop.run(duration=duration)
     return loop, policy, latch, chip
@@ -169,3 +191,25 @@ class TestDurationAndRecords:
         assert [r["late_ms"] for r in records] == [0.0] * 5  # each on its own deadline
         assert [r["infer_ms"] for r in records] == [0.0, 0.0, 375.0, 0.0, 0.0]
         assert all(r["cmd"] == [0.05, 0.05] and r["mu"] == [0.5, 0.5] for r in records)
+        assert "advance_ms" not in records[0]
+
+    def test_every_timing_field_of_the_records(self, tmp_path) -> None:
+        telemetry = Telemetry(tmp_path / "t.jsonl")
+        # inference 31.25 ms on tick 2, writes 15.625 ms, sim step 62.5 ms, frames 125 ms old,
+        # tick 3 wakes 0.25 period late
+        loop, policy, _, _ = run_loop({2: PERIOD / 8}, duration=4 * PERIOD, telemetry=telemetry,
+                                      late={2: PERIOD / 4}, frame_age=PERIOD / 2,
+                                      write_s=PERIOD / 16, advance_s=PERIOD / 4)
+        telemetry.close()
+        assert periods(policy.starts) == [0, 1, 2.25, 3]
+        records = [json.loads(line) for line in (tmp_path / "t.jsonl").read_text().splitlines()]
+        assert [r["t"] for r in records] == [0.0, 0.25, 0.5625, 0.75]
+        assert [r["late_ms"] for r in records] == [0.0, 0.0, 62.5, 0.0]
+        assert [r["frame_age_ms"] for r in records] == [125.0] * 4
+        assert [r["infer_ms"] for r in records] == [0.0, 31.25, 0.0, 0.0]
+        assert [r["write_ms"] for r in records] == [15.625] * 4
+        assert [r["advance_ms"] for r in records] == [62.5] * 4
+        assert [r["tick_ms"] for r in records] == [78.125, 109.375, 78.125, 78.125]
+        assert [r["overruns"] for r in records] == [0] * 4
+        assert loop.stats.tick_ms.max == 109.375
+        assert loop.stats.infer_ms.max == 31.25
