@@ -45,3 +45,23 @@ def test_max_speed_resolution_order():
     assert resolve_max_speed(None, 0.2) == 0.2
     assert resolve_max_speed(None, None) == DEFAULT_MAX_SPEED
     assert resolve_max_speed(None, 7.0) == DEFAULT_MAX_SPEED
+
+
+class TestLimitsOnBothSides:
+    """Each wheel's clamps hold in both directions, and only a model's max_speed in (0, 1]
+    is taken (mutants of the bounds survived the tests above)."""
+
+    @pytest.mark.parametrize("mu", [(1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, 1.0)])
+    def test_each_wheel_clamped_to_unit_range_in_both_directions(self, mu):
+        pipeline = ActionPipeline(max_speed=1.0, trim=(2.0, 3.0))
+        assert pipeline.duties(mu) == mu
+
+    def test_mu_clamped_before_trim_and_sign(self):
+        pipeline = ActionPipeline(max_speed=0.5, trim=(0.5, 1.5), sign=(-1, 1))
+        assert pipeline.duties((-4.0, -4.0)) == pytest.approx((0.25, -0.75))
+
+    @pytest.mark.parametrize(("from_model", "expected"),
+                             [(1.0, 1.0), (1e-3, 1e-3), (0.0, DEFAULT_MAX_SPEED),
+                              (-0.2, DEFAULT_MAX_SPEED), (1.0001, DEFAULT_MAX_SPEED)])
+    def test_a_models_max_speed_is_taken_only_in_0_to_1(self, from_model, expected):
+        assert resolve_max_speed(None, from_model) == expected

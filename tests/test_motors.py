@@ -11,8 +11,16 @@ import pytest
 from jetbot_rt.config import MotorsConfig
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus, I2CFault
-from jetbot_rt.hal.motors import MotorHatDrive, WaveshareDrive, hardware_stop, open_drive
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.hal.motors import (
+    MODE1_AI,
+    MotorHatDrive,
+    WaveshareDrive,
+    hardware_stop,
+    open_drive,
+    prescale_for,
+    read_mode1,
+)
+from jetbot_rt.hal.pca9685_emulator import PRE_SCALE, PCA9685Emulator
 
 ADDR = 0x60
 STEP = 1 / 4096  # one PCA9685 count
@@ -174,3 +182,25 @@ def test_motorkit_imports_where_blinka_does_not_know_the_board(tmp_path) -> None
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "1.0"
+
+
+class TestPwmFrequencyAndReadBack:
+    """The prescaler from the datasheet's formula, its limits, and MODE1 read back."""
+
+    @pytest.mark.parametrize(("hz", "prescale"), [
+        (200.0, 0x1E),  # the datasheet's own example
+        (1600.0, 3), (50.0, 121), (60.0, 101),
+        (1526.0, 3), (5000.0, 3),  # the fastest the chip does: prescale 3
+        (24.0, 253), (23.84, 255), (10.0, 255),  # the slowest: 255
+    ])
+    def test_prescale(self, hz: float, prescale: int) -> None:
+        assert prescale_for(hz) == prescale
+
+    def test_the_chip_runs_at_the_configured_frequency(self, chip) -> None:
+        WaveshareDrive(I2CBus(chip, 1), ADDR, 50.0)
+        assert chip.registers[PRE_SCALE] == 121
+        assert chip.frequency == pytest.approx(50.0, rel=0.01)
+        assert not chip.sleeping
+
+    def test_mode1_reads_back_awake_with_auto_increment(self, chip, waveshare) -> None:
+        assert read_mode1(waveshare.bus, ADDR) == MODE1_AI

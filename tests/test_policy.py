@@ -140,3 +140,12 @@ def test_missing_and_corrupt_files(tmp_path):
     corrupt.write_bytes(b"\x08\x07 this is not a protobuf model")
     with pytest.raises(UsageError, match="not a loadable ONNX model"):
         OnnxPolicy.load(corrupt)
+
+
+class TestMetadataThatCannotBeHonoured:
+    @pytest.mark.parametrize("metadata", [{"jetbot_rt.color_order": "GBR"},
+                                          {"jetbot_rt.pixel_range": "0-65535"}])
+    def test_unsupported_colour_order_or_range_is_refused_at_load(self, tmp_path, metadata):
+        path = channel_probe(tmp_path / "p.onnx", metadata=metadata)
+        with pytest.raises(UsageError, match="unsupported metadata"):
+            OnnxPolicy.load(path)
