@@ -179,3 +179,36 @@ def test_send_errors_are_reported_once_and_never_raised(
     err = capsys.readouterr().err
     assert err.count("\n") == 1
     assert "cannot notify systemd" in err and "nobody-listens.sock" in err
+
+
+class TestPingsAtIrregularTickTimes:
+    """Real ticks never land exactly on the next ping's due time: with jittered tick times,
+    a ping goes out with the first tick at or after each due time, and never earlier."""
+
+    def test_ping_and_status_schedule(self, listener: Listener,
+                                      monkeypatch: pytest.MonkeyPatch) -> None:
+        notifier = notifier_for(listener, monkeypatch, watchdog_usec=300_000)
+        notifier.ready("ready")
+        listener.messages()
+        pings, statuses, due, status_due = [], [], None, None
+        times = [20.0 + step * 0.0137 + (step % 3) * 0.0011 for step in range(250)]
+        for now in times:
+            notifier.tick(now, lambda: "running")
+            for message in listener.messages():
+                if "WATCHDOG" in message:
+                    pings.append(now)
+                if "STATUS" in message:
+                    statuses.append(now)
+            # each tick at or after a due time must have pinged
+            if due is not None and now >= due:
+                assert pings[-1] == now, (now, due)
+            if pings and pings[-1] == now:
+                due = now + 0.1
+            if status_due is not None and now >= status_due:
+                assert statuses[-1] == now
+            if statuses and statuses[-1] == now:
+                status_due = now + 1.0
+        assert pings[0] == times[0] and statuses[0] == times[0]
+        assert all(b - a >= 0.1 for a, b in zip(pings, pings[1:]))
+        assert all(b - a < 0.1 + 0.0137 + 0.0023 for a, b in zip(pings, pings[1:]))
+        assert len(statuses) == 4  # 0, ~1, ~2, ~3 s into 3.4 s of ticks
