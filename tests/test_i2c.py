@@ -85,3 +85,11 @@ def test_missing_device_node_is_a_usage_error(monkeypatch) -> None:
     monkeypatch.delenv(EMULATOR_ENV, raising=False)
     with pytest.raises(UsageError, match="/dev/i2c-250"):
         open_smbus(250)
+
+
+def test_missing_device_node_names_the_os_error_in_words(monkeypatch) -> None:
+    monkeypatch.delenv(EMULATOR_ENV, raising=False)
+    with pytest.raises(UsageError) as info:
+        open_smbus(250)
+    assert str(info.value) == ("cannot open /dev/i2c-250: No such file or directory (is the bus "
+                               "enabled and is this user in the i2c group?)")

@@ -253,3 +253,30 @@ class TestStopNeverReportsAnOffItCouldNotWrite:
         assert "motor outputs off" not in result.stdout
         assert "motors NOT confirmed off" in result.stderr
         assert not chip.refresh().all_off()  # true: it could not be written
+
+
+class TestARuntimesLastTickAfterTheFirstStop:
+    """A runtime's tick can land between ``stop``'s first write and the moment that runtime
+    latches: the stop that follows the runtime's acknowledgement must clear it."""
+
+    def test_a_write_made_while_acknowledging_is_cleared(self, tmp_path: Path) -> None:
+        chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+        drive = WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0)
+        drive.write(0.6, 0.6)
+        late_writes: list[bool] = []
+
+        def last_tick_then_latch(_reason: str) -> None:
+            drive.write(0.4, -0.4)  # the tick in flight lands after the first hardware stop
+            late_writes.append(not PCA9685Emulator(state_file=tmp_path / "chip.json")
+                               .refresh().all_off())
+
+        server = ControlServer(last_tick_then_latch, tmp_path / "run" / "control.sock")
+        server.start()
+        try:
+            result = stop_command(tmp_path)
+        finally:
+            server.close()
+        assert late_writes == [True], "the late write reached the board"
+        assert chip.refresh().all_off(), chip.duties()
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "motor outputs off" in result.stdout
