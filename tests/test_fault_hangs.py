@@ -16,7 +16,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import RuntimeProcess, wait_for
+from runner import RuntimeProcess, processes_with, wait_for
 from test_fault_matrix import (
     MU,
     assert_no_gst_left,
@@ -144,7 +144,7 @@ def test_stop_during_warm_up_ends_the_run_within_1_s(tmp_path: Path, how: str,
         rt.start()
         # warming up: the camera child delivers, the telemetry has no tick
         assert wait_for(lambda: rt.process.poll() is not None or
-                        bool(processes_with_mark(mark)), 60, interval=0.02) is not None
+                        bool(processes_with(mark)), 60, interval=0.02) is not None
         time.sleep(1.0 + delay)  # the camera's first frame is in, the inference hangs
         assert rt.process.poll() is None
         t0 = time.monotonic()
@@ -167,12 +167,6 @@ def test_stop_during_warm_up_ends_the_run_within_1_s(tmp_path: Path, how: str,
     assert not [r for r in rt.records() if "event" not in r], "it drove"
     assert_no_gst_left(mark)
     record_figures(f"warm-up-{how}-real", exit_code=0, inject_to_exit_s=round(t_exit - t0, 4))
-
-
-def processes_with_mark(mark: str) -> list[int]:
-    from runner import processes_with
-
-    return processes_with(mark)
 
 
 def _state(pid: int) -> str:
