@@ -64,10 +64,7 @@ def name(signum: int) -> str:
         return f"SIGRTMIN+{signum - low}" if low and signum >= low else f"signal {signum}"
 
 
-Handler = Callable[[int, Any], None]
-
-
-def install(handler: Handler) -> None:
+def install(handler: Callable[[int, Any], None]) -> None:
     """``handler`` for every signal in ``HANDLED`` (main thread only)."""
     for signum in HANDLED:
         with contextlib.suppress(OSError, ValueError, RuntimeError):  # not settable here
