@@ -175,10 +175,11 @@ def run(args: argparse.Namespace) -> int:
 
         # The wheels move only if this process owns the bus: refused (exit 2, naming the
         # owner) while a runtime drives, whatever its environment or user.
-        BoardLock.acquire(config.motors.i2c_bus)
+        owner = BoardLock.acquire(config.motors.i2c_bus)
     rows = [_row("motor board", lambda: check_motor_board(config))]
     if args.spin:
         rows.append(_row("spin", lambda: spin_wheels(config)))
+        owner.release()  # the wheels are done: a stop need not wait for the camera rows
 
     size = (224, 224)
     described: dict[str, Any] = {}

@@ -316,3 +316,55 @@ def test_two_simulations_run_side_by_side(tmp_path: Path) -> None:
         assert "Traceback" not in result.stderr
         assert result.records[-1]["cmd"] == [0.0, 0.0] and len(result.ticks) >= 5
     assert not list((tmp_path / "run").glob("control-*.sock")), "sockets left behind"
+
+
+WARM_STOP = """
+import sys
+from jetbot_rt.cli import main
+import jetbot_rt.stop
+print("ready", flush=True)
+sys.stdin.readline()
+sys.exit(main(["stop"]))
+"""
+
+
+@needs_gst
+def test_stop_during_check_spin_ends_the_pulse(tmp_path: Path) -> None:
+    """``check --spin`` owns the bus while it pulses: a stop from another environment puts
+    the chip to sleep, the pulse's next write fails (its row says why), the wheels stay off,
+    and ``stop`` confirms once the pulse has let go of the bus."""
+    mark = f"fm{uuid.uuid4().hex[:12]}"
+    config = tmp_path / "robot.toml"
+    config.write_text(real_config(live_camera(mark)))
+    chip_file = tmp_path / "chip.json"
+    from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+
+    chip = PCA9685Emulator(0x60, state_file=chip_file)
+    env = dict(os.environ, **{EMULATOR_ENV: str(chip_file),
+                              "JETBOT_RT_RUNTIME_DIR": str(tmp_path / "run")})
+    # The stop's interpreter is started first and waits for a line: it acts at once, inside
+    # the first 0.5 s pulse.
+    stop = subprocess.Popen([sys.executable, "-c", WARM_STOP], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(env, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "other")))
+    check = subprocess.Popen([JETBOT_RT, "check", "--spin", "--config", str(config),
+                              "--frames", "5"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, env=env)
+    try:
+        assert stop.stdout.readline().strip() == "ready"
+        assert wait_for(lambda: not chip.refresh().all_off(), 60.0, 0.005) is not None
+        stop_out, stop_err = stop.communicate("\n", timeout=30)
+        stopped_off = chip.refresh().all_off()
+        out, err = check.communicate(timeout=60)
+    finally:
+        for proc in (stop, check):
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert stop.returncode == 0, stop_out + stop_err
+    assert stopped_off and chip.refresh().all_off() and chip.sleeping
+    assert check.returncode == 1, out + err
+    assert "Traceback" not in err
+    (spin_row,) = [line for line in out.splitlines() if line.startswith("spin")]
+    assert "FAIL" in spin_row and "asleep" in spin_row, out
+    assert wait_for(lambda: not processes_with(mark), 3.0) is not None
