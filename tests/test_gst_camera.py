@@ -56,6 +56,22 @@ def test_solid_colour_arrives_as_rgb_at_the_requested_size(pattern, rgb) -> None
         cam.stop()
 
 
+def test_a_large_frame_is_area_averaged_down_not_sampled() -> None:
+    """8-pixel red/green checkers at 1280x720 scaled to 64x64: each output pixel covers
+    20x11 input pixels, so an average is half red, half green everywhere, where a sampling
+    filter (bilinear, GStreamer's default) keeps pure red and pure green squares."""
+    cam = camera("gst:videotestsrc is-live=true pattern=checkers-8 ! "
+                 "video/x-raw,width=1280,height=720", size=(64, 64))
+    cam.start()
+    try:
+        image = cam.read().image.astype(int)
+    finally:
+        cam.stop()
+    assert image.shape == (64, 64, 3)
+    red_green = image[:, :, :2]
+    assert red_green.min() > 70 and red_green.max() < 190
+
+
 def test_reader_keeps_only_the_newest_frame() -> None:
     cam = camera("gst:videotestsrc is-live=true pattern=ball")
     cam.start()
@@ -153,7 +169,7 @@ def test_source_pipelines() -> None:
     )
     assert source_pipeline(CameraConfig(source="usb:/dev/video1")) == "v4l2src device=/dev/video1"
     full = full_pipeline(CameraConfig(source="gst:videotestsrc"), 224, 112)
-    assert full.startswith("videotestsrc ! videoconvert ! videoscale ! ")
+    assert full.startswith("videotestsrc ! videoconvert ! videoscale method=hermite ! ")
     assert "video/x-raw,format=RGB,width=224,height=112 ! fdsink fd=1" in full
 
 

@@ -2,7 +2,7 @@
 
 pip's OpenCV has no GStreamer, so the pipeline runs as a child process instead of inside
 ``cv2.VideoCapture``: the source (CSI through Argus, a USB camera, or any GStreamer source)
-is followed by conversion to RGB at the policy's input size and ``fdsink fd=1``. A reader
+is followed by conversion to RGB, scaling to the policy's input size and ``fdsink fd=1``. A reader
 thread keeps only the newest frame and the ``time.monotonic()`` at which its last byte
 arrived. If the pipeline dies or stalls, no new frame arrives, the frame ages and the control
 loop refuses it (safe stop). The child never outlives the runtime: it gets SIGKILL when the
@@ -36,6 +36,13 @@ if TYPE_CHECKING:
 GST_LAUNCH = "gst-launch-1.0"
 ARGUS_HINT = "for the CSI camera try: sudo systemctl restart nvargus-daemon"
 PR_SET_PDEATHSIG = 1
+SCALE_METHOD = "hermite"
+"""videoscale's multi-tap Hermite filter: it widens with the scale factor, so a 1280x720
+frame scaled to 64x64 averages the pixels each output pixel covers, as the sim's render
+stands for, instead of sampling a few of them (the default bilinear aliases checkerboards
+into stripes). Measured against OpenCV's area average over videotestsrc patterns: mean
+absolute difference 2.8 (bilinear 23.9), about 1 ms more CPU per frame
+(benchmarks/bench_camera_scale.py, docs/SIM.md)."""
 
 
 def _framerate(fps: float) -> str:
@@ -60,7 +67,7 @@ def source_pipeline(camera: CameraConfig) -> str:
 def full_pipeline(camera: CameraConfig, width: int, height: int) -> str:
     """Source, then RGB at the policy's size written to stdout."""
     return (
-        f"{source_pipeline(camera)} ! videoconvert ! videoscale ! "
+        f"{source_pipeline(camera)} ! videoconvert ! videoscale method={SCALE_METHOD} ! "
         f"video/x-raw,format=RGB,width={width},height={height} ! fdsink fd=1 sync=false"
     )
 
