@@ -4,6 +4,11 @@ evaluation. Writes benchmarks/results/train.json and train.md.
     python benchmarks/bench_train.py --train-run runs/forward --command "jetbot-train ..." \
         --command-wall-s 398                                            # all three
     python benchmarks/bench_train.py --throughput-steps 2048 --episodes 0   # throughput only
+    python benchmarks/bench_train.py --episodes 0 --processes 1 2 4 8 16 --tag h100  # a big host
+
+Throughput is PPO end to end at the training size and on the 224x224 path it replaced (the
+first bundled network, pool 4, physics at 240 Hz), in the same run, per number of env worker
+processes.
 
 Timings depend on what else the machine runs; the recorded ones say what the CPU was shared with.
 """
@@ -22,15 +27,24 @@ from pathlib import Path
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def measure_throughput(steps: int, num_envs: int) -> dict:
+def measure_throughput(steps: int, num_envs: int, path: str) -> dict:
+    from jetbot_rt.config import Config
+    from jetbot_rt.train.model import LEGACY_IMAGE_SIZE, LEGACY_POOL, ModelConfig
     from jetbot_rt.train.ppo import PPOArgs, train
 
+    config, model = Config(), ModelConfig()
+    if path == "224":
+        config.sim.physics_hz = 240.0
+        model = ModelConfig(image_size=LEGACY_IMAGE_SIZE, pool=LEGACY_POOL)
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
-        summary = train(PPOArgs(total_timesteps=steps, num_envs=num_envs, out=out,
-                                progress=False))
+        summary = train(PPOArgs(total_timesteps=steps, num_envs=num_envs, out=out, config=config,
+                                model=model, progress=False))
         total = time.perf_counter() - start
     return {
+        "path": path,
+        "image_size": model.image_size,
+        "physics_hz": config.sim.physics_hz,
         "timesteps": summary["global_step"],
         "num_envs": num_envs,
         "env_steps_per_s_training_loop": summary["steps_per_s"],
@@ -58,14 +72,26 @@ def write_markdown(result: dict, path: Path) -> None:
     if result.get("note"):
         lines += [f"Note: {result['note']}", ""]
     if "throughput" in result:
-        t = result["throughput"]
+        rows = result["throughput"]
         lines += [
             "## PPO throughput (end to end: render, policy, update)", "",
-            f"- {t['timesteps']} steps, {t['num_envs']} env processes: "
-            f"**{t['env_steps_per_s_training_loop']} env steps/s** in the training loop, "
-            f"{t['env_steps_per_s_with_startup_and_export']} steps/s including worker start "
-            "and ONNX export", "",
+            f"{rows[0]['timesteps']} env steps per run, one env per worker process; env "
+            "steps/s in the training loop (with worker start and ONNX export). 1-min load "
+            f"average {result.get('loadavg_1min_at_start')} at start, "
+            f"{result.get('loadavg_1min_at_end')} at the end.", "",
+            "| worker processes | 224x224 path (pool 4, 240 Hz) | training size "
+            f"({rows[-1]['image_size']}x{rows[-1]['image_size']}, "
+            f"{rows[-1]['physics_hz']:g} Hz) | ratio |",
+            "| --- | --- | --- | --- |",
         ]
+        for base, new in zip(rows[::2], rows[1::2], strict=True):
+            ratio = new["env_steps_per_s_training_loop"] / base["env_steps_per_s_training_loop"]
+            lines.append(
+                f"| {base['num_envs']} | {base['env_steps_per_s_training_loop']} "
+                f"({base['env_steps_per_s_with_startup_and_export']}) | "
+                f"**{new['env_steps_per_s_training_loop']}** "
+                f"({new['env_steps_per_s_with_startup_and_export']}) | x{ratio:.2f} |")
+        lines.append("")
     if "bundled_training" in result:
         b = result["bundled_training"]
         lines += [
@@ -96,7 +122,11 @@ def write_markdown(result: dict, path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--throughput-steps", type=int, default=2048)
-    parser.add_argument("--num-envs", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--num-envs", type=int, default=os.cpu_count() or 1,
+                        help="eval worker processes")
+    parser.add_argument("--processes", type=int, nargs="+", default=[1, 2],
+                        help="env worker processes of each throughput run")
+    parser.add_argument("--tag", default="", help="write train-TAG.json / train-TAG.md")
     parser.add_argument("--train-run", type=Path, help="output dir of the bundled policy's run")
     parser.add_argument("--command", default="", help="the command that made --train-run")
     parser.add_argument("--command-wall-s", type=float,
@@ -109,11 +139,19 @@ def main() -> None:
         "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores, {platform.platform()}",
         "note": args.note,
     }
-    previous = RESULTS / "train.json"
+    name = f"train-{args.tag}" if args.tag else "train"
+    previous = RESULTS / f"{name}.json"
     if previous.exists():
         result = {**json.loads(previous.read_text()), **result}
+        if isinstance(result.get("throughput"), dict):  # one run of the format before issue 10
+            del result["throughput"]
     if args.throughput_steps > 0:
-        result["throughput"] = measure_throughput(args.throughput_steps, args.num_envs)
+        result["loadavg_1min_at_start"] = round(os.getloadavg()[0], 2)
+        result["throughput"] = [
+            measure_throughput(args.throughput_steps, n, path)
+            for n in args.processes for path in ("224", "train")
+        ]
+        result["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     if args.train_run is not None:
         result["bundled_training"] = read_training_run(args.train_run)
         if args.command_wall_s is not None:
@@ -125,8 +163,8 @@ def main() -> None:
         result["eval"] = evaluate(None, episodes=args.episodes, num_workers=args.num_envs)
         result["eval"]["policy"] = "jetbot_rt/policies/forward.onnx"
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "train.json").write_text(json.dumps(result, indent=2) + "\n")
-    write_markdown(result, RESULTS / "train.md")
+    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_markdown(result, RESULTS / f"{name}.md")
     print(json.dumps(result, indent=2))
 
 

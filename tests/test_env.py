@@ -76,7 +76,7 @@ def test_nominal_start_and_seed_task_geometry(env):
     obs, info = env.reset(seed=0, options={"start_noise": False})
     assert np.allclose(info["pose"], (-0.6, 0.0, 0.0))
     assert info["distance"] == pytest.approx(0.9, abs=1e-3)
-    # The red block is in view (a 5 cm cube 0.9 m away: 2x4 pixels at 64x64), mid-frame.
+    # The red block is in view (a 5 cm cube 0.9 m away: 2x4 pixels at 56x56), mid-frame.
     red = (obs[:, :, 0] > 150) & (obs[:, :, 1] < 80) & (obs[:, :, 2] < 80)
     columns = np.nonzero(red.any(axis=0))[0]
     width = obs.shape[1]

@@ -39,7 +39,7 @@ def train_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 def smoke_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("smoke")
     result = train_cli("train", "--task", "forward", "--timesteps", "256", "--num-envs", "1",
-                       "--out", str(out), "--seed", "3", "--no-progress")
+                       "--workers", "0", "--out", str(out), "--seed", "3", "--no-progress")
     assert result.returncode == 0, result.stderr
     return out
 
@@ -145,6 +145,8 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run):
         (["train", "--timesteps", "0", "--out", str(tmp_path / "x")], "--timesteps"),
         (["train", "--timesteps", "10", "--num-envs", "-1", "--out", str(tmp_path / "x")],
          "--num-envs"),
+        (["train", "--timesteps", "10", "--num-envs", "2", "--workers", "1", "--out",
+          str(tmp_path / "x")], "--workers must be 0"),
         (["train", "--timesteps", "10", "--out", str(a_file / "sub")], "cannot write"),
         (["export", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(out)],
          "does not exist"),

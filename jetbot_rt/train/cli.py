@@ -36,7 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--timesteps", type=_positive_int, required=True,
                        help="environment steps in total, over all envs")
     train.add_argument("--num-envs", type=_positive_int, default=os.cpu_count() or 1,
-                       help="env worker processes (default: one per core)")
+                       help="envs stepped together (default: one per core)")
+    train.add_argument("--workers", type=int, default=None,
+                       help="env processes: 0 runs the envs in the training process; "
+                            "default one process per env")
     train.add_argument("--out", required=True, help="output directory")
     train.add_argument("--config", help="TOML config (sim, actions, loop sections are used)")
     train.add_argument("--seed", type=int, default=1)
@@ -71,7 +74,8 @@ def _train(args: argparse.Namespace) -> int:
     get_task(args.task)
     config = load_config(args.config)
     summary = train(PPOArgs(
-        task=args.task, total_timesteps=args.timesteps, num_envs=args.num_envs, out=args.out,
+        task=args.task, total_timesteps=args.timesteps, num_envs=args.num_envs,
+        workers=args.workers, out=args.out,
         config=config, seed=args.seed, resume=args.resume, progress=not args.no_progress,
     ))
     print(f"trained {summary['global_step']} steps in {summary['wall_s']:.0f} s "

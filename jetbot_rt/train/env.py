@@ -21,9 +21,9 @@ from jetbot_rt.actions import ActionPipeline, resolve_max_speed
 from jetbot_rt.config import Config, SimConfig
 from jetbot_rt.errors import UsageError
 
-POLICY_IMAGE_SIZE = 64
+POLICY_IMAGE_SIZE = 56
 """Side of the square camera image the trainer renders and its networks take (the one
-source of the training size): docs/SIM.md, "The render-size seam", says why 64."""
+source of the training size): docs/SIM.md, "The render-size seam", says why 56."""
 MIN_REWARD_DISTANCE = 0.01
 """m; the reward's 1/d is evaluated at no less than this (bodies never get this close)."""
 

@@ -1,10 +1,11 @@
 """PPO for the camera-image JetBot tasks, readable top to bottom (after cleanrl's
 ``ppo_continuous_action.py``).
 
-One PyBullet client per worker process (``AsyncVectorEnv``); the learner runs in the main
-process. Gymnasium 1.x vector envs autoreset in the *next* step by default, which would put
-a reset observation paired with an ignored action into the rollout; we ask for SAME_STEP
-autoreset and bootstrap the time-limit truncation from the final observation's value.
+One PyBullet client per worker process (``AsyncVectorEnv``), or all envs in the learner's
+process (``SyncVectorEnv``, ``workers=0``). Gymnasium 1.x vector envs autoreset in the *next*
+step by default, which would put a reset observation paired with an ignored action into the
+rollout; we ask for SAME_STEP autoreset and bootstrap the time-limit truncation from the final
+observation's value.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from gymnasium.vector import AsyncVectorEnv, AutoresetMode
+from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 from tqdm import tqdm
 
 from jetbot_rt.config import Config
@@ -49,7 +50,11 @@ class PPOArgs:
     total_timesteps: int = 40_000
     """Environment steps to collect in total, over all envs."""
     num_envs: int = 2
-    """Worker processes, each with its own PyBullet client."""
+    """Envs stepped together, each with its own PyBullet client."""
+    workers: int | None = None
+    """Env worker processes: None (default) runs each env in a process of its own
+    (``AsyncVectorEnv``); 0 runs them all in the training process (``SyncVectorEnv``: no
+    process start or pickling, one core)."""
     out: str = "runs/forward"
     """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
     config: Config = field(default_factory=Config)
@@ -144,10 +149,13 @@ def _prepare_out(out: Path) -> None:
         raise UsageError(f"cannot write to output directory {out}: {exc.strerror or exc}") from None
 
 
-def make_vector_env(args: PPOArgs, image_size: int) -> AsyncVectorEnv:
+def make_vector_env(args: PPOArgs, image_size: int) -> VectorEnv:
+    """SAME_STEP autoreset either way (module docstring)."""
     size = (image_size, image_size)
     factories = [partial(make_task_env, args.task, args.config, image_size=size)
                  for _ in range(args.num_envs)]
+    if args.workers == 0:
+        return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
     return AsyncVectorEnv(
         factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP, shared_memory=True
     )
@@ -159,6 +167,9 @@ def train(args: PPOArgs) -> dict[str, Any]:
         raise UsageError(f"--timesteps must be > 0, got {args.total_timesteps}")
     if args.num_envs <= 0:
         raise UsageError(f"--num-envs must be > 0, got {args.num_envs}")
+    if args.workers not in (None, 0, args.num_envs):
+        raise UsageError(f"--workers must be 0 (envs in this process) or --num-envs "
+                         f"({args.num_envs}, one process each), got {args.workers}")
     out = Path(args.out)
     _prepare_out(out)
     checkpoint_path = out / CHECKPOINT_NAME
