@@ -97,6 +97,7 @@ def plot(recording: Recording, out: Path) -> bool:
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        import matplotlib.ticker
     except ImportError:
         print("jetbot-rt report: the plot needs matplotlib: pip install 'jetbot_rt[train]'",
               file=sys.stderr)
@@ -141,6 +142,7 @@ def plot(recording: Recording, out: Path) -> bool:
                          xytext=(-4, -4), textcoords="offset points", ha="right", va="top",
                          fontsize=8, color=color,
                          bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
+    axes[4].yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=4, integer=True))
     axes[-1].set_xlabel("t (s)")
     title = str(recording.path)
     if recording.meta:
@@ -156,14 +158,15 @@ def plot(recording: Recording, out: Path) -> bool:
 # ---- video ---------------------------------------------------------------------------------
 
 
-def _bar(canvas: np.ndarray, x: int, y: int, value: float, label: str) -> None:
-    """A horizontal bar for ``value`` in [-1, 1] around a centre line."""
+def _bar(canvas: np.ndarray, x: int, y: int, value: float, label: str,
+         scale: float = 1.0) -> None:
+    """A horizontal bar for ``value / scale`` in [-1, 1] around a centre line."""
     width = 150
     cv2.putText(canvas, label, (x, y + 11), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (220, 220, 220), 1)
     left = x + 50
     cv2.rectangle(canvas, (left, y), (left + width, y + 12), (80, 80, 80), 1)
     centre = left + width // 2
-    end = centre + int(max(-1.0, min(1.0, value)) * width / 2)
+    end = centre + int(max(-1.0, min(1.0, value / scale)) * width / 2)
     color = (80, 200, 80) if value >= 0 else (80, 80, 230)
     cv2.rectangle(canvas, (min(centre, end), y + 2), (max(centre, end), y + 10), color, -1)
     cv2.putText(canvas, f"{value:+.3f}", (left + width + 6, y + 11), cv2.FONT_HERSHEY_SIMPLEX,
@@ -181,11 +184,11 @@ def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
     text = (f"t {record['t']:7.2f} s  tick {record['tick']}  "
             f"{'SAFE STOP' if stop else record.get('state', '')}")
     cv2.putText(canvas, text, (6, height + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, white, 1)
-    mu, cmd = record["mu"], record["cmd"]
+    mu, cmd = record["mu"], (stop.get("cmd", [0.0, 0.0]) if stop else record["cmd"])
     _bar(canvas, 6, height + 26, mu[0], "mu L")
     _bar(canvas, 6, height + 44, mu[1], "mu R")
-    _bar(canvas, 6, height + 66, cmd[0] / max_speed, "duty L")
-    _bar(canvas, 6, height + 84, cmd[1] / max_speed, "duty R")
+    _bar(canvas, 6, height + 66, cmd[0], "duty L", max_speed)
+    _bar(canvas, 6, height + 84, cmd[1], "duty R", max_speed)
     timing = (f"tick {record['tick_ms']:.1f} ms  infer {record['infer_ms']:.1f} ms  "
               f"age {record['frame_age_ms']:.0f} ms  overruns {record['overruns']}")
     cv2.putText(canvas, timing, (6, height + PANEL - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, white, 1)
