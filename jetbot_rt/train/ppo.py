@@ -43,6 +43,14 @@ METRIC_FIELDS = (
 )
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (``taskset``, cgroup cpusets), else the CPU count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
 @dataclass
 class PPOArgs:
     task: str = "forward"
@@ -98,8 +106,10 @@ class PPOArgs:
     """Save the checkpoint every this many updates (and always at the end)."""
     torch_threads: int = 1
     """Learner threads while collecting; the env workers need the other cores."""
-    update_threads: int = field(default_factory=lambda: os.cpu_count() or 1)
-    """Learner threads during the update, when the env workers are idle."""
+    update_threads: int = field(default_factory=lambda: usable_cores())
+    """Learner threads during the update, when the env workers are idle: the cores this
+    process may run on (its CPU affinity), not all the machine's; more threads than cores
+    made PPO 10x slower (2 cores of 16 under taskset: 43 env steps/s instead of ~450)."""
     progress: bool = True
     model: ModelConfig = field(default_factory=ModelConfig)
 
