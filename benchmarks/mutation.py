@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import contextlib
 import difflib
 import importlib.metadata
 import json
@@ -40,6 +41,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -86,6 +88,76 @@ EQUIVALENT: dict[tuple[str, str, str], str] = {
 }
 
 
+@dataclass(frozen=True)
+class Planted:
+    """A bug planted by hand (issue 9's list): ``old`` replaced by ``new`` in ``module``."""
+
+    name: str
+    module: str
+    old: str
+    new: str
+    tests: tuple[str, ...]
+
+
+PLANTED = [
+    Planted("latch flag set after its callbacks", "jetbot_rt/safety.py",
+            "            self._tripped.set()\n        for callback in self._callbacks:\n"
+            "            callback(reason)\n",
+            "        for callback in self._callbacks:\n            callback(reason)\n"
+            "        self._tripped.set()\n",
+            ("tests/test_safety_contracts.py",)),
+    Planted("overrun count's + 1 lost", "jetbot_rt/loop.py",
+            "// self.period) + 1", "// self.period)", ("tests/test_loop_schedule.py",)),
+    Planted("NCHW frames fed with height and width swapped", "jetbot_rt/policy.py",
+            "tensor.transpose(2, 0, 1)", "tensor.transpose(2, 1, 0)",
+            ("tests/test_policy_orientation.py",)),
+    Planted("the main thread pings WATCHDOG=1", "jetbot_rt/runtime.py",
+            "            loop_thread.join(0.05)\n",
+            "            loop_thread.join(0.05)\n"
+            "            self.notifier.tick(time.monotonic(), self._status)\n",
+            ("tests/test_systemd_e2e.py::TestWatchdogPingsComeFromCompletedTicks",)),
+    Planted("export parity check skipped", "jetbot_rt/train/export.py",
+            "    error = parity_error(model, data)", "    error = 0.0",
+            ("tests/test_export_parity.py",)),
+    Planted("stop waits without limit for a hung write", "jetbot_rt/safety.py",
+            "self._lock.acquire(timeout=STOP_LOCK_TIMEOUT_S)", "self._lock.acquire()",
+            ("tests/test_safety_contracts.py",)),
+    Planted("safe_stop logged before the motors are zero", "jetbot_rt/runtime.py",
+            "        self.drive = GuardedDrive(self.backend.drive, self.latch)\n"
+            "        # registered after the drive's own zeroing callback: the event is logged once"
+            " it is done\n        self.latch.on_trip(self._log_trip)\n",
+            "        self.latch.on_trip(self._log_trip)\n"
+            "        self.drive = GuardedDrive(self.backend.drive, self.latch)\n",
+            ("tests/test_stop_event_order.py",)),
+    Planted("GStreamer child not killed with its parent", "jetbot_rt/hal/gst_camera.py",
+            "    _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)\n", "",
+            ("tests/test_gst_camera.py::TestAQuietChildDiesWithItsParent",)),
+    Planted("watchdog trips a timeout late", "jetbot_rt/safety.py",
+            "remaining = self._last_kick + self.timeout - self.clock()",
+            "remaining = self._last_kick + 2 * self.timeout - self.clock()",
+            ("tests/test_safety_contracts.py",)),
+    Planted("stop exits 0 when the bus cannot be opened", "jetbot_rt/stop.py",
+            "    except (UsageError, I2CFault) as exc:\n        return str(exc)\n    return None",
+            "    except (UsageError, I2CFault) as exc:\n        return None\n    return None",
+            ("tests/test_stop.py",)),
+]
+
+
+@contextlib.contextmanager
+def planted_bug(path: Path, planted: Planted) -> Iterator[bool]:
+    """The bug written into ``path`` for the block; yields False when ``old`` is not found
+    exactly once (the code changed: the list needs updating)."""
+    original = path.read_text()
+    if original.count(planted.old) != 1:
+        yield False
+        return
+    path.write_text(original.replace(planted.old, planted.new))
+    try:
+        yield True
+    finally:
+        path.write_text(original)
+
+
 class RemoveStatement(Operator):
     """An assignment, a bare call or a ``raise`` in a function body becomes ``pass``."""
 
@@ -117,6 +189,8 @@ def _removable(node) -> bool:  # type: ignore[no-untyped-def]
 
 
 OUR_OPERATORS = {"jetbot/RemoveStatement": RemoveStatement}
+LEFT_OUT: list[str] = []
+"""Test files that failed without any mutant in this run's baseline (named in the results)."""
 
 
 def _in_annotation(node) -> bool:  # type: ignore[no-untyped-def]
@@ -246,14 +320,20 @@ def baseline(copy: Path, test: str) -> float | None:
 
 
 def run_mutant(copy: Path, mutant: Mutant, timeouts: dict[str, float]) -> None:
-    fast, slow = MODULES[mutant.module]
     t0 = time.monotonic()
-    with use_mutation(copy / mutant.module, operator_instance(mutant.operator),
-                      mutant.occurrence) as (_original, mutated):
-        if mutated is None:
-            mutant.outcome = "error"
+    if mutant.operator == "planted":
+        planted = next(p for p in PLANTED if p.name == mutant.original)
+        stages: tuple[list[str], ...] = ([t for t in planted.tests if t not in LEFT_OUT], [])
+        mutation = planted_bug(copy / planted.module, planted)
+    else:
+        stages = MODULES[mutant.module]
+        mutation = use_mutation(copy / mutant.module, operator_instance(mutant.operator),
+                                mutant.occurrence)
+    with mutation as applied:
+        if applied is False or (isinstance(applied, tuple) and applied[1] is None):
+            mutant.outcome = "error"  # a planted bug whose code changed: update PLANTED
             return
-        for stage, tests in (("fast", fast), ("slow", slow)):
+        for stage, tests in zip(("fast", "slow"), stages, strict=True):
             if not tests:
                 continue
             outcome, output = run_tests(test_command(copy, tests), timeouts[stage])
@@ -287,6 +367,8 @@ def main() -> int:
     parser.add_argument("--budget-s", type=float, default=25 * 60,
                         help="stop starting new mutants after this many seconds")
     parser.add_argument("--modules", nargs="*", default=list(MODULES))
+    parser.add_argument("--no-planted", action="store_true",
+                        help="leave out issue 9's planted bugs (PLANTED)")
     parser.add_argument("--out", default=str(RESULTS / "mutation.json"))
     args = parser.parse_args()
 
@@ -313,14 +395,20 @@ def main() -> int:
             chosen.append(mutant)
     rng.shuffle(chosen)
     print(f"{len(chosen)} mutants sampled of {sum(population.values())}", flush=True)
+    planted = [] if args.no_planted else [
+        Mutant(p.module, "planted", -1, 0, original=p.name, mutated=p.new.strip()[:120])
+        for p in PLANTED]
+    chosen += planted  # the workers take from the end: the planted bugs first
 
-    left_out: list[str] = []
+    left_out = LEFT_OUT
     base = Path(tempfile.mkdtemp(prefix="jetbot-rt-mutation-"))
     try:
         copies = [make_worker(base, i) for i in range(args.jobs)]
         # the unmutated tests must pass in the copies (those that do not are left out and
         # named in the results); their times set the timeouts
-        files = sorted({t for m in args.modules for stage in MODULES[m] for t in stage})
+        files = sorted({t for m in args.modules for stage in MODULES[m] for t in stage}
+                       | {t for m in planted for p in PLANTED if p.name == m.original
+                          for t in p.tests})
         with concurrent.futures.ThreadPoolExecutor(args.jobs) as pool:
             jobs = {t: pool.submit(baseline, copies[i % len(copies)], t)
                     for i, t in enumerate(files)}
@@ -372,7 +460,7 @@ def report(mutants: list[Mutant], population: dict[str, int], args: argparse.Nam
            wall_s: float, load_before: str, left_out: list[str]) -> None:
     per_module = {}
     for module in population:
-        mine = [m for m in mutants if m.module == module]
+        mine = [m for m in mutants if m.module == module and m.operator != "planted"]
         counts = {k: sum(m.outcome == k for m in mine)
                   for k in ("killed", "timeout", "survived", "equivalent", "skipped", "error")}
         tested = counts["killed"] + counts["timeout"] + counts["survived"]
@@ -391,7 +479,10 @@ def report(mutants: list[Mutant], population: dict[str, int], args: argparse.Nam
         "tests": {m: {"fast": MODULES[m][0], "slow": MODULES[m][1]} for m in population},
         "killed": killed, "tested": tested,
         "modules": per_module,
-        "survivors": [asdict(m) for m in mutants if m.outcome == "survived"],
+        "planted": [{"bug": m.original, "module": m.module, "outcome": m.outcome,
+                     "seconds": m.seconds} for m in mutants if m.operator == "planted"],
+        "survivors": [asdict(m) for m in mutants
+                      if m.outcome == "survived" and m.operator != "planted"],
         "equivalent": [asdict(m) for m in mutants if m.outcome == "equivalent"],
         "mutants": [{k: v for k, v in asdict(m).items() if k != "output_tail"} for m in mutants],
     }
@@ -416,6 +507,9 @@ def report(mutants: list[Mutant], population: dict[str, int], args: argparse.Nam
         lines.append(f"| {module} | {v['population']} | {v['sampled']} | "
                      f"{v['killed'] + v['timeout']} | {v['survived']} | {v['equivalent']} | "
                      f"{v['skipped']} | {score} |")
+    lines += ["", "## Issue 9's planted bugs (always run, not in the score)", ""]
+    for m in result["planted"]:
+        lines.append(f"- {m['bug']} ({m['module']}): {m['outcome']}")
     lines += ["", "## Survivors", ""]
     for m in result["survivors"]:
         lines.append(f"- {m['module']}:{m['line']} {m['operator']}: `{m['original']}` -> "
