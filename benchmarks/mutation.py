@@ -136,9 +136,8 @@ PLANTED = [
             "remaining = self._last_kick + self.timeout - self.clock()",
             "remaining = self._last_kick + 2 * self.timeout - self.clock()",
             ("tests/test_safety_contracts.py",)),
-    Planted("stop exits 0 when the bus cannot be opened", "jetbot_rt/stop.py",
-            "    except (UsageError, I2CFault) as exc:\n        return str(exc)\n    return None",
-            "    except (UsageError, I2CFault) as exc:\n        return None\n    return None",
+    Planted("stop exits 0 when the stop cannot be written", "jetbot_rt/stop.py",
+            "        return EXIT_BOARD_UNREACHABLE\n", "        return exit_code\n",
             ("tests/test_stop.py",)),
 ]
 
