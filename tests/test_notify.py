@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -212,3 +213,29 @@ class TestPingsAtIrregularTickTimes:
         assert all(b - a >= 0.1 for a, b in zip(pings, pings[1:]))
         assert all(b - a < 0.1 + 0.0137 + 0.0023 for a, b in zip(pings, pings[1:]))
         assert len(statuses) == 4  # 0, ~1, ~2, ~3 s into 3.4 s of ticks
+
+
+class TestAFullNotifySocketNeverBlocks:
+    """A service manager that stops reading (its queue full) must not stall the control loop:
+    sends give up at once, the failure is said once, and nothing is raised."""
+
+    def test_sends_to_a_full_queue_return(self, tmp_path: Path, capfd) -> None:
+        path = str(tmp_path / "notify.sock")
+        listener = Listener(path, path)  # bound, never read from
+        try:
+            notifier = Notifier(path, watchdog_usec=3)
+            notifier.ready("ready")
+            finished = threading.Event()
+
+            def flood() -> None:
+                for step in range(20_000):  # far more datagrams than the queue holds
+                    notifier.tick(float(step), lambda: "running " + "x" * 200)
+                finished.set()
+
+            thread = threading.Thread(target=flood, daemon=True)
+            thread.start()
+            assert finished.wait(60), "a send blocked on the full queue"
+            err = capfd.readouterr().err
+            assert err.count("cannot notify systemd") == 1, err
+        finally:
+            listener.sock.close()
