@@ -65,3 +65,11 @@ class TestLimitsOnBothSides:
                               (-0.2, DEFAULT_MAX_SPEED), (1.0001, DEFAULT_MAX_SPEED)])
     def test_a_models_max_speed_is_taken_only_in_0_to_1(self, from_model, expected):
         assert resolve_max_speed(None, from_model) == expected
+
+
+def test_the_pipeline_cannot_be_changed_while_in_use():
+    import dataclasses
+
+    pipeline = ActionPipeline()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        pipeline.max_speed = 1.0  # type: ignore[misc]

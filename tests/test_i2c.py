@@ -93,3 +93,14 @@ def test_missing_device_node_names_the_os_error_in_words(monkeypatch) -> None:
         open_smbus(250)
     assert str(info.value) == ("cannot open /dev/i2c-250: No such file or directory (is the bus "
                                "enabled and is this user in the i2c group?)")
+
+
+def test_defaults_three_retries_and_the_emulator_at_0x60(tmp_path, monkeypatch) -> None:
+    chip = PCA9685Emulator(0x60)
+    chip.fail_next = 4
+    with pytest.raises(I2CFault, match=r"\(after 4 attempts\)"):
+        I2CBus(chip, 1).writeto(0x60, bytes((MODE1, 0x20)))
+    chip.fail_next = 3
+    I2CBus(chip, 1).writeto(0x60, bytes((MODE1, 0x20)))
+    monkeypatch.setenv(EMULATOR_ENV, str(tmp_path / "chip.json"))
+    assert open_smbus(1).address == 0x60

@@ -213,3 +213,20 @@ class TestDurationAndRecords:
         assert [r["overruns"] for r in records] == [0] * 4
         assert loop.stats.tick_ms.max == 109.375
         assert loop.stats.infer_ms.max == 31.25
+
+
+class TestStaleFrameReason:
+    def test_the_reason_names_the_age_and_the_limit(self) -> None:
+        clock = SimulatedClock()
+        latch = SimulatedTimeLatch(clock)
+        chip = PCA9685Emulator(0x60)
+        drive = GuardedDrive(TimedDrive(chip, clock, 0.0), latch)
+        loop = ControlLoop(
+            camera=FreshCamera(clock, age=0.375), policy=TimedPolicy(clock, {}),
+            actions=ActionPipeline(), drive=drive, latch=latch, watchdog=None,
+            telemetry=Telemetry(None), period=PERIOD, max_frame_age=0.25, clock=clock,
+        )
+        loop.run(duration=4 * PERIOD)
+        assert latch.fault
+        assert latch.reason == "stale frame: 375 ms old (max_frame_age 250 ms)"
+        assert loop.stats.ticks == 0 and chip.all_off()

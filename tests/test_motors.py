@@ -204,3 +204,16 @@ class TestPwmFrequencyAndReadBack:
 
     def test_mode1_reads_back_awake_with_auto_increment(self, chip, waveshare) -> None:
         assert read_mode1(waveshare.bus, ADDR) == MODE1_AI
+
+
+@pytest.mark.parametrize(("left", "right", "pwm"), [(1, 2, (8, 13)), (3, 4, (2, 7)),
+                                                    (2, 1, (13, 8)), (4, 3, (7, 2))])
+def test_motorhat_every_motors_enable_comes_back_after_a_stop(chip, left, right, pwm) -> None:
+    drive = motorhat(chip, left=left, right=right)
+    drive.write(0.5, 0.5)
+    drive.stop()
+    assert chip.all_off()
+    drive.write(0.25, -0.25)
+    # effective duty, not the full-on bit alone: the stop's full-off bit would win over it
+    assert chip.channel(pwm[0]).duty == 1.0 and chip.channel(pwm[1]).duty == 1.0
+    assert not chip.all_off()

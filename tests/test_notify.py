@@ -239,3 +239,22 @@ class TestAFullNotifySocketNeverBlocks:
             assert err.count("cannot notify systemd") == 1, err
         finally:
             listener.sock.close()
+
+
+class TestUnparsableEnvironment:
+    """systemd's variables as text a bug or a hand-written unit could give: never a crash,
+    and no watchdog unless it is clearly ours."""
+
+    @pytest.mark.parametrize(("usec", "pid", "enabled"), [
+        ("abc", None, False), ("0", None, False), ("-5", None, False), ("1", None, True),
+        ("300000", "x", False), ("300000", "-3", False), ("300000", "0", False),
+    ])
+    def test_values(self, listener: Listener, monkeypatch: pytest.MonkeyPatch,
+                    usec: str, pid: str | None, enabled: bool) -> None:
+        monkeypatch.setenv("NOTIFY_SOCKET", listener.name)
+        monkeypatch.setenv("WATCHDOG_USEC", usec)
+        if pid is None:
+            monkeypatch.delenv("WATCHDOG_PID", raising=False)
+        else:
+            monkeypatch.setenv("WATCHDOG_PID", pid)
+        assert Notifier.from_env().watchdog_enabled is enabled

@@ -149,3 +149,89 @@ class TestMetadataThatCannotBeHonoured:
         path = channel_probe(tmp_path / "p.onnx", metadata=metadata)
         with pytest.raises(UsageError, match="unsupported metadata"):
             OnnxPolicy.load(path)
+
+
+class TestWhatTheSessionIsGiven:
+    """The settings the runtime promises onnxruntime gets, read back from the live session,
+    and the paths it derives (mutants of these survived the behavioural tests)."""
+
+    def test_threads_and_no_spinning(self, tmp_path):
+        policy = OnnxPolicy.load(channel_probe(tmp_path / "p.onnx"), threads=2)
+        options = policy.session.get_session_options()
+        assert (options.intra_op_num_threads, options.inter_op_num_threads) == (2, 2)
+        for key in ("session.intra_op.allow_spinning", "session.inter_op.allow_spinning"):
+            assert options.get_session_config_entry(key) == "0"
+
+    def test_bundled_policy_and_cache_paths(self, monkeypatch, tmp_path):
+        from pathlib import Path
+
+        from jetbot_rt.policy import bundled_policy_path, tensorrt_cache_dir
+
+        bundled = bundled_policy_path()
+        assert bundled.name == "forward.onnx" and bundled.parent.name == "policies"
+        assert OnnxPolicy.load(bundled).spec.layout == "NHWC"
+        monkeypatch.delenv("JETBOT_RT_CACHE_DIR", raising=False)
+        monkeypatch.setenv("HOME", str(tmp_path))
+        assert tensorrt_cache_dir() == Path(tmp_path) / ".cache" / "jetbot_rt"
+
+    @pytest.mark.parametrize("declared", ["96x96", "64x63", "6x64"])
+    def test_a_declared_size_other_than_the_graphs_is_refused(self, tmp_path, declared):
+        path = channel_probe(tmp_path / "p.onnx", size=64,
+                             metadata={"jetbot_rt.input_size": declared})
+        with pytest.raises(UsageError, match="metadata says input size"):
+            OnnxPolicy.load(path)
+        ok = channel_probe(tmp_path / "ok.onnx", size=64,
+                           metadata={"jetbot_rt.input_size": "64x64"})
+        assert OnnxPolicy.load(ok).spec.width == 64
+
+
+def symbolic_batch_actions(path, count):
+    """Input and output with a symbolic batch ``N`` (as our exporter writes them): onnxruntime
+    cannot fix the output's shape, so its action count shows only when it runs."""
+    graph = helper.make_graph(
+        [helper.make_node("ReduceMean", ["obs"], ["m"], axes=[1, 2, 3], keepdims=1),
+         helper.make_node("Reshape", ["m", "col"], ["m2"]),
+         helper.make_node("Add", ["c", "m2"], ["mu"])],
+        "symbolic",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", 32, 32, 3])],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, ["N", count])],
+        [numpy_helper.from_array(np.zeros((1, count), np.float32), "c"),
+         numpy_helper.from_array(np.array([-1, 1], np.int64), "col")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path
+
+
+class TestActionCountWithASymbolicBatch:
+    def test_three_actions_refused_at_load(self, tmp_path):
+        path = symbolic_batch_actions(tmp_path / "m.onnx", 3)
+        with pytest.raises(UsageError, match=r"expected 2 actions \[left, right\] in output mu"):
+            OnnxPolicy.load(path)
+
+    def test_two_actions_load_and_run(self, tmp_path):
+        policy = OnnxPolicy.load(symbolic_batch_actions(tmp_path / "m.onnx", 2))
+        assert policy.infer(np.zeros((32, 32, 3), np.uint8)).tolist() == [0.0, 0.0]
+
+    def test_one_action_from_an_unknown_width_is_a_fault_when_it_runs(self, tmp_path):
+        # mu = Tile(c, [batch, 1]) with c one value: the repeats come from the input's shape at
+        # run time, so onnxruntime cannot tell the output's width before it runs
+        graph = helper.make_graph(
+            [helper.make_node("Shape", ["obs"], ["shape"]),
+             helper.make_node("Slice", ["shape", "zero", "one"], ["batch"]),
+             helper.make_node("Concat", ["batch", "one"], ["repeats"], axis=0),
+             helper.make_node("Tile", ["c", "repeats"], ["mu"])],
+            "tiled",
+            [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", 32, 32, 3])],
+            [helper.make_tensor_value_info("mu", TensorProto.FLOAT, None)],
+            [numpy_helper.from_array(np.zeros((1, 1), np.float32), "c"),
+             numpy_helper.from_array(np.array([0], np.int64), "zero"),
+             numpy_helper.from_array(np.array([1], np.int64), "one")],
+        )
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+        model.ir_version = 8
+        onnx.save(model, str(tmp_path / "m.onnx"))
+        policy = OnnxPolicy.load(tmp_path / "m.onnx")
+        with pytest.raises(Fault, match="policy gave 1 action values, expected 2"):
+            policy.infer(np.zeros((32, 32, 3), np.uint8))

@@ -252,3 +252,11 @@ def _no_watchdog_thread_left() -> None:
         if thread.name == "jetbot-rt-watchdog":
             thread.join(LIVENESS_S)
             assert not thread.is_alive(), "a watchdog thread outlived its test"
+
+
+class TestAnUntrippedLatch:
+    def test_has_no_reason_time_or_fault(self) -> None:
+        latch = SafeStopLatch()
+        assert (latch.tripped, latch.reason, latch.t_trip, latch.fault) == (False, None, None,
+                                                                            False)
+        assert not latch.wait(0)
