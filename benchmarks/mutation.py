@@ -83,9 +83,70 @@ MODULES: dict[str, tuple[list[str], list[str]]] = {
                             ["tests/test_systemd_e2e.py::TestWatchdogPingsComeFromCompletedTicks"]),
 }
 
-EQUIVALENT: dict[tuple[str, str, str], str] = {
-    # (module, original line stripped, mutated line stripped): why no test can tell them apart
-}
+@dataclass(frozen=True)
+class Equivalent:
+    """Mutants of ``original`` (a changed line, stripped) in ``module`` that no test can tell
+    from the original, with the reason. ``mutated``: the exact mutated lines, or empty for
+    every mutant of that line whose operator name contains ``operator``."""
+
+    module: str
+    original: str
+    mutated: tuple[str, ...]
+    reason: str
+    operator: str = ""
+
+    def matches(self, mutant: Mutant) -> bool:
+        if mutant.module != self.module or mutant.original != self.original:
+            return False
+        if self.mutated:
+            return mutant.mutated in self.mutated
+        return bool(self.operator) and self.operator in mutant.operator
+
+
+_CLAMP = "return low if value < low else high if value > high else value"
+_PID = "pid = (_positive_int(pid_text) or -1) if pid_text else None"
+_DIM = "return value if isinstance(value, int) and value > 0 else None"
+EQUIVALENT = [
+    Equivalent("jetbot_rt/actions.py", _CLAMP,
+               (_CLAMP.replace("value < low", "value <= low"),
+                _CLAMP.replace("value > high", "value >= high")),
+               "at value == bound both return the bound"),
+    Equivalent("jetbot_rt/hal/motors.py", "OSCILLATOR_HZ = 25_000_000",
+               ("OSCILLATOR_HZ = 25000001", "OSCILLATOR_HZ = 24999999"),
+               "1 Hz on 25 MHz changes no prescale value: checked for every 0.1 Hz from 1 Hz "
+               "to 5 kHz"),
+    Equivalent("jetbot_rt/stop.py", "motors = MotorsConfig()", ("pass",),
+               "_motors() already returns the default MotorsConfig with the error it reports"),
+    Equivalent("jetbot_rt/stop.py",
+               "except Exception as exc:  # the stop must go out whatever the config holds",
+               (), "unreachable defence in depth: load_config turns every failure it can meet "
+               "(bytes, size, nesting, TOML, FIFO, values) into UsageError "
+               "(tests/test_fault_config_read.py)", operator="ExceptionReplacer"),
+    Equivalent("jetbot_rt/loop.py", '"t": round(self.t_start - t0, 6),',
+               ('"t": round(self.t_start - t0, 7),', '"t": round(self.t_start - t0, 5),'),
+               "the record's t rounded to 0.1 or 10 us instead of 1 us; ticks are ms apart"),
+    Equivalent("jetbot_rt/notify.py", _PID,
+               tuple(_PID.replace("or -1", f"or {v}") for v in ("not 1", "- 0", "- 2", "~1")),
+               "an unparsable WATCHDOG_PID must name no process: -1, 0, -2 and False all do "
+               "(only a positive pid can equal ours)"),
+    Equivalent("jetbot_rt/policy.py", _DIM, (_DIM.replace("value > 0", "value != 0"),),
+               "onnxruntime reports an unknown or negative dimension as None or a name, never "
+               "a negative int (checked: dim_value -1 reads back as None)"),
+]
+
+
+def equivalent_reason(mutant: Mutant) -> str:
+    for rule in EQUIVALENT:
+        if rule.matches(mutant):
+            return rule.reason
+    # ``*`` (keyword-only marker) -> ``/`` in a signature: cosmic-ray's Mul_Div also swaps the
+    # star of ``def f(self, a, *, start=0)``; every caller passes those by keyword either way
+    if (mutant.operator.endswith("ReplaceBinaryOperator_Mul_Div")
+            and mutant.mutated == mutant.original.replace("*, ", "/, ", 1)
+            and "*, " in mutant.original and ": " in mutant.original):
+        return ("the keyword-only marker * made a positional-only marker /: the parameters "
+                "after it are still passed by keyword, as every caller does")
+    return ""
 
 
 @dataclass(frozen=True)
@@ -369,7 +430,13 @@ def main() -> int:
     parser.add_argument("--no-planted", action="store_true",
                         help="leave out issue 9's planted bugs (PLANTED)")
     parser.add_argument("--out", default=str(RESULTS / "mutation.json"))
+    parser.add_argument("--reclassify", action="store_true",
+                        help="re-apply EQUIVALENT to the results in --out and rewrite them; "
+                             "runs nothing")
     args = parser.parse_args()
+    if args.reclassify:
+        reclassify(Path(args.out))
+        return 0
 
     t_start = time.monotonic()
     load_before = uptime()
@@ -388,7 +455,7 @@ def main() -> int:
             if not describe(mutant, source):
                 continue
             picked += 1
-            reason = EQUIVALENT.get((module, mutant.original, mutant.mutated))
+            reason = equivalent_reason(mutant)
             if reason:
                 mutant.outcome, mutant.equivalent_reason = "equivalent", reason
             chosen.append(mutant)
@@ -455,8 +522,25 @@ def main() -> int:
     return 0
 
 
+def reclassify(path: Path) -> None:
+    """Equivalent-mutant decisions made after a run, applied to its recorded results."""
+    old = json.loads(path.read_text())
+    mutants = [Mutant(**m) for m in old["mutants"]]
+    for mutant in mutants:
+        if mutant.outcome in ("survived", "equivalent"):
+            reason = equivalent_reason(mutant)
+            mutant.outcome = "equivalent" if reason else "survived"
+            mutant.equivalent_reason = reason
+    args = argparse.Namespace(seed=old["seed"], per_module=old["per_module"], jobs=old["jobs"],
+                              out=str(path))
+    population = {m: v["population"] for m, v in old["modules"].items()}
+    report(mutants, population, args, old["wall_s"], old["load_before"],
+           old.get("tests_left_out", []), load_after=old["load_after"])
+
+
 def report(mutants: list[Mutant], population: dict[str, int], args: argparse.Namespace,
-           wall_s: float, load_before: str, left_out: list[str]) -> None:
+           wall_s: float, load_before: str, left_out: list[str],
+           load_after: str | None = None) -> None:
     per_module = {}
     for module in population:
         mine = [m for m in mutants if m.module == module and m.operator != "planted"]
@@ -472,7 +556,8 @@ def report(mutants: list[Mutant], population: dict[str, int], args: argparse.Nam
         "tool": f"cosmic-ray {importlib.metadata.version('cosmic-ray')} operators"
                 " + RemoveStatement",
         "seed": args.seed, "per_module": args.per_module, "jobs": args.jobs,
-        "wall_s": round(wall_s), "load_before": load_before, "load_after": uptime(),
+        "wall_s": round(wall_s), "load_before": load_before,
+        "load_after": load_after or uptime(),
         "score": round(killed / tested, 3) if tested else None,
         "tests_left_out": left_out,
         "tests": {m: {"fast": MODULES[m][0], "slow": MODULES[m][1]} for m in population},
