@@ -36,6 +36,11 @@ EXIT_BOUND_S = 1.0
 F_SETPIPE_SZ = 1031
 
 
+def control_socket(rt: RuntimeProcess) -> Path:
+    """The runtime's own control socket (one per runtime, named by its pid)."""
+    return rt.root / "run" / f"control-{rt.pid}.sock"
+
+
 def stalled_fifo(tmp_path: Path) -> tuple[Path, int]:
     """A FIFO with a reader that never reads, its buffer shrunk to one page (fills in <1 s)."""
     path = tmp_path / "telemetry.fifo"
@@ -75,7 +80,7 @@ def test_stalled_telemetry_reader_blocks_neither_the_loop_nor_the_exit(tmp_path:
         elif how == "SIGINT":
             os.kill(rt.pid, signal.SIGINT)
         elif how == "stop-command":
-            assert request_stop(tmp_path / "run" / "control.sock").acknowledged
+            assert request_stop(control_socket(rt)).acknowledged
         else:
             assert not rt.board_off(), "still driving with the reader stalled"
         t_off = wait_for(rt.board_off, EXIT_BOUND_S + (2 if how == "policy-hangs" else 0))
@@ -149,7 +154,7 @@ def test_stop_during_warm_up_ends_the_run_within_1_s(tmp_path: Path, how: str,
         assert rt.process.poll() is None
         t0 = time.monotonic()
         if how == "stop-command":
-            assert request_stop(tmp_path / "run" / "control.sock").acknowledged
+            assert request_stop(control_socket(rt)).acknowledged
         else:
             os.kill(rt.pid, getattr(signal, how))
             if how == "SIGTSTP":
@@ -182,11 +187,11 @@ def test_control_socket_serves_a_stop_whatever_other_clients_do(tmp_path: Path,
     mark = f"fh{uuid.uuid4().hex[:12]}"
     policy = policy_models.constant(tmp_path / "policy.onnx", MU)
     rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(live_camera(mark)))
-    path = tmp_path / "run" / "control.sock"
     others: list[socket.socket] = []
     try:
         rt.start()
         rt.wait_ticks(10)
+        path = control_socket(rt)
         for _ in range(20):  # more than the server keeps: the oldest are dropped
             other = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             other.connect(str(path))
@@ -212,3 +217,59 @@ def test_control_socket_serves_a_stop_whatever_other_clients_do(tmp_path: Path,
     assert_no_gst_left(mark)
     record_figures(f"control-socket-{clients}-real", exit_code=0,
                    stop_answered_s=round(answered, 4))
+
+
+def slow_to_load(path: Path, adds: int = 20000) -> Path:
+    """A model onnxruntime takes seconds to load (a chain of ``adds`` Add nodes to optimise),
+    as a TensorRT engine build at session creation does on a Jetson."""
+    import numpy as np
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    nodes = [helper.make_node("ReduceMean", ["obs"], ["m0"], keepdims=0)]
+    nodes += [helper.make_node("Add", [f"m{i}", "one"], [f"m{i + 1}"]) for i in range(adds)]
+    nodes += [helper.make_node("Mul", [f"m{adds}", "zero"], ["z"]),
+              helper.make_node("Add", ["mu_const", "z"], ["mu"])]
+    inits = [numpy_helper.from_array(np.array(1.0, np.float32), "one"),
+             numpy_helper.from_array(np.array(0.0, np.float32), "zero"),
+             numpy_helper.from_array(np.array([list(MU)], np.float32), "mu_const")]
+    graph = helper.make_graph(
+        nodes, "slow_to_load",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [1, 224, 224, 3])],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGINT", "stop-command"])
+def test_stop_during_the_model_load_ends_the_run_within_1_s(tmp_path: Path, how: str) -> None:
+    """The control socket appears right before the model load starts: a stop 0.3 s later
+    meets a load that takes seconds (the worker thread is left to the process exit)."""
+    mark = f"fh{uuid.uuid4().hex[:12]}"
+    policy = slow_to_load(tmp_path / "policy.onnx")
+    rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(live_camera(mark)))
+    try:
+        rt.start()
+        sock = control_socket(rt)
+        assert wait_for(lambda: rt.process.poll() is not None or sock.exists(), 60,
+                        interval=0.01) is not None
+        time.sleep(0.3)
+        if rt.process.poll() is not None:
+            raise AssertionError("ended before the stop: " + "".join(rt.finish_raw(5)))
+        t0 = time.monotonic()
+        if how == "stop-command":
+            assert request_stop(sock).acknowledged
+        else:
+            os.kill(rt.pid, getattr(signal, how))
+        out, err = rt.finish_raw(10)
+        t_exit = time.monotonic()
+    finally:
+        rt.kill()
+    assert rt.process.returncode == 0, out + err
+    assert "Traceback" not in err and len(err.strip().splitlines()) <= 1, err
+    assert t_exit - t0 < EXIT_BOUND_S, f"{t_exit - t0:.2f} s"
+    assert not processes_with(mark), "the camera was started"
+    assert not [r for r in rt.records() if "event" not in r], "it drove"
+    record_figures(f"model-load-{how}-real", exit_code=0, inject_to_exit_s=round(t_exit - t0, 4))
