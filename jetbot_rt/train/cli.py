@@ -40,6 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--workers", type=int, default=None,
                        help="env processes: 0 runs the envs in the training process; "
                             "default one process per env")
+    train.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                       help="env workers as Ray actors: alone, Ray on this machine; 'auto' "
+                            "the cluster this machine is in; or HOST:PORT (needs the cluster "
+                            "extra; docs/TRAINING.md)")
     train.add_argument("--out", required=True, help="output directory")
     train.add_argument("--config", help="TOML config (sim, actions, loop sections are used)")
     train.add_argument("--seed", type=int, default=1)
@@ -75,7 +79,7 @@ def _train(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     summary = train(PPOArgs(
         task=args.task, total_timesteps=args.timesteps, num_envs=args.num_envs,
-        workers=args.workers, out=args.out,
+        workers=args.workers, ray=args.ray, out=args.out,
         config=config, seed=args.seed, resume=args.resume, progress=not args.no_progress,
     ))
     print(f"trained {summary['global_step']} steps in {summary['wall_s']:.0f} s "

@@ -39,7 +39,7 @@ POLICY_NAME = "policy.onnx"
 METRIC_FIELDS = (
     "update", "global_step", "wall_s", "steps_per_s", "episodes", "mean_return",
     "mean_final_distance", "success_rate", "policy_loss", "value_loss", "entropy",
-    "approx_kl", "clipfrac", "learning_rate", "reward_scale",
+    "approx_kl", "clipfrac", "learning_rate", "reward_scale", "worker_restarts",
 )
 
 
@@ -62,7 +62,12 @@ class PPOArgs:
     workers: int | None = None
     """Env worker processes: None (default) runs each env in a process of its own
     (``AsyncVectorEnv``); 0 runs them all in the training process (``SyncVectorEnv``: no
-    process start or pickling, one core)."""
+    process start or pickling, one core). With ``ray``: the Ray actors hosting the envs
+    (1 .. num_envs; default one per CPU of the cluster, at most num_envs)."""
+    ray: str | None = None
+    """Env workers as actors on a Ray cluster (``ray_workers.py``): "local" starts Ray on this
+    machine, "auto" joins the cluster this machine is part of, HOST:PORT or ray://HOST:PORT
+    another; None (default): no Ray, not even imported."""
     out: str = "runs/forward"
     """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
     config: Config = field(default_factory=Config)
@@ -164,6 +169,10 @@ def make_vector_env(args: PPOArgs, image_size: int) -> VectorEnv:
     size = (image_size, image_size)
     factories = [partial(make_task_env, args.task, args.config, image_size=size)
                  for _ in range(args.num_envs)]
+    if args.ray is not None:
+        from jetbot_rt.train.ray_workers import RayVectorEnv
+
+        return RayVectorEnv(factories, address=args.ray, workers=args.workers)
     if args.workers == 0:
         return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
     return AsyncVectorEnv(
@@ -177,7 +186,10 @@ def train(args: PPOArgs) -> dict[str, Any]:
         raise UsageError(f"--timesteps must be > 0, got {args.total_timesteps}")
     if args.num_envs <= 0:
         raise UsageError(f"--num-envs must be > 0, got {args.num_envs}")
-    if args.workers not in (None, 0, args.num_envs):
+    if args.ray is not None and args.workers is not None and not 0 < args.workers <= args.num_envs:
+        raise UsageError(f"--workers with --ray must be 1 .. --num-envs ({args.num_envs}), "
+                         f"got {args.workers}")
+    if args.ray is None and args.workers not in (None, 0, args.num_envs):
         raise UsageError(f"--workers must be 0 (envs in this process) or --num-envs "
                          f"({args.num_envs}, one process each), got {args.workers}")
     out = Path(args.out)
@@ -365,6 +377,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
                 "clipfrac": round(float(np.mean(clipfracs)), 4),
                 "learning_rate": optimizer.param_groups[0]["lr"],
                 "reward_scale": round(scaler.scale, 2),
+                "worker_restarts": getattr(envs.unwrapped, "restarts", 0),
             }
             _write_metrics_row(metrics_path, row)
             bar.update(min(global_step, args.total_timesteps) - bar.n)

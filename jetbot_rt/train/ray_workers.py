@@ -64,20 +64,21 @@ class EnvWorker:
     def spaces(self) -> tuple[gym.Space, gym.Space]:
         return self.envs[0].observation_space, self.envs[0].action_space
 
-    def pid(self) -> int:
-        import os
+    def node_id(self) -> str:
+        import ray
 
-        return os.getpid()
+        return ray.get_runtime_context().get_node_id()
 
     def reset(self, seeds: Sequence[int | None], options: dict[str, Any] | None
               ) -> tuple[np.ndarray, list[dict[str, Any]]]:
-        results = [env.reset(seed=seed, options=options) for env, seed in zip(self.envs, seeds)]
+        results = [env.reset(seed=seed, options=options)
+                   for env, seed in zip(self.envs, seeds, strict=True)]
         return np.stack([obs for obs, _ in results]), [info for _, info in results]
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                  np.ndarray, list[dict[str, Any]]]:
         frames, rewards, terminated, truncated, infos = [], [], [], [], []
-        for env, action in zip(self.envs, actions):
+        for env, action in zip(self.envs, actions, strict=True):
             obs, reward, term, trunc, info = env.step(action)
             if term or trunc:
                 final = {"final_obs": obs, "final_info": info}
@@ -176,7 +177,7 @@ class RayVectorEnv(VectorEnv):
             raise ValueError(f"{len(seeds)} seeds for {self.num_envs} envs")
         self._seeds = seeds
         refs = [actor.reset.remote([seeds[i] for i in block], options)
-                for actor, block in zip(self.actors, self.blocks)]
+                for actor, block in zip(self.actors, self.blocks, strict=True)]
         results = [self._get(w, ref) for w, ref in enumerate(refs)]
         infos: dict[str, Any] = {}
         frames = []
@@ -184,7 +185,7 @@ class RayVectorEnv(VectorEnv):
             if result is None:
                 result = self._recover(w)
             frames.append(result[0])
-            for i, info in zip(self.blocks[w], result[1]):
+            for i, info in zip(self.blocks[w], result[1], strict=True):
                 infos = self._add_info(infos, info, i)
         self._obs = concatenate(self.single_observation_space, np.concatenate(frames),
                                 self._obs)
@@ -194,7 +195,7 @@ class RayVectorEnv(VectorEnv):
                                                  np.ndarray, dict[str, Any]]:
         actions = np.asarray(actions)
         refs = [actor.step.remote(actions[block.start:block.stop])
-                for actor, block in zip(self.actors, self.blocks)]
+                for actor, block in zip(self.actors, self.blocks, strict=True)]
         frames, rewards, terminated, truncated = [], [], [], []
         infos: dict[str, Any] = {}
         for w, ref in enumerate(refs):
@@ -208,7 +209,7 @@ class RayVectorEnv(VectorEnv):
             rewards.append(result[1])
             terminated.append(result[2])
             truncated.append(result[3])
-            for i, info in zip(self.blocks[w], result[4]):
+            for i, info in zip(self.blocks[w], result[4], strict=True):
                 infos = self._add_info(infos, info, i)
         self._obs = np.concatenate(frames)
         return (self._obs.copy(), np.concatenate(rewards), np.concatenate(terminated),
