@@ -222,3 +222,30 @@ def test_stop_command_under_a_signal_still_stops(tmp_path: Path, sig: int) -> No
     assert stopper.returncode in (0,), out + err
     assert "Traceback" not in err
     assert not processes_with(f"{JETBOT_RT} stop")
+
+
+# signal(7), the signals whose default action is Term, Core or Stop, as Linux numbers them.
+SIGNAL_7_ENDING = {
+    "SIGABRT", "SIGALRM", "SIGBUS", "SIGFPE", "SIGHUP", "SIGILL", "SIGINT", "SIGIO", "SIGKILL",
+    "SIGPIPE", "SIGPROF", "SIGPWR", "SIGQUIT", "SIGSEGV", "SIGSTKFLT", "SIGSTOP", "SIGSYS",
+    "SIGTERM", "SIGTRAP", "SIGTSTP", "SIGTTIN", "SIGTTOU", "SIGUSR1", "SIGUSR2", "SIGVTALRM",
+    "SIGXCPU", "SIGXFSZ",
+}
+NOT_CAUGHT = {
+    "SIGKILL", "SIGSTOP",  # cannot be
+    "SIGABRT",  # systemd's WatchdogSignal for a wedged process: it must die
+    "SIGSEGV", "SIGBUS", "SIGFPE", "SIGILL",  # the process state cannot be trusted
+    "SIGPIPE", "SIGXFSZ",  # CPython ignores them: the write fails with an error instead
+}
+
+
+def test_every_signal_that_ends_or_stops_the_process_is_decided() -> None:
+    """A signal dropped from jetbot_rt.signals (or a new one) fails here: each is caught or
+    left alone by a decision written in docs/SAFETY.md."""
+    present = {n for n in SIGNAL_7_ENDING if hasattr(signal, n)}
+    handled = {signals.name(s) for s in signals.HANDLED}
+    assert present - NOT_CAUGHT <= handled
+    assert not handled & NOT_CAUGHT
+    realtime = range(signal.SIGRTMIN, signal.SIGRTMAX + 1)  # default action: Term
+    assert set(realtime) <= set(signals.TERMINATING)
+    assert {signals.name(s) for s in signals.SUSPENDING} == {"SIGTSTP", "SIGTTIN", "SIGTTOU"}
