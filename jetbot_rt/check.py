@@ -34,7 +34,7 @@ class Row:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML config file")
     parser.add_argument("--policy", help="ONNX policy (default: [policy] path, else bundled)")
-    parser.add_argument("--frames", type=int, default=30, help="camera frames to take (30)")
+    parser.add_argument("--frames", type=int, default=30, help="camera frames to take")
     parser.add_argument(
         "--spin", action="store_true",
         help=f"pulse each wheel forward at duty {SPIN_DUTY} for {SPIN_SECONDS} s",

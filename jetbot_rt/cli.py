@@ -1,4 +1,4 @@
-"""``jetbot-rt``: run, stop, check, install-service.
+"""``jetbot-rt``: drive the JetBot (or its simulation) from an ONNX policy, with a safe stop.
 
 Each subcommand lives in its own module, imported only when used, so ``jetbot-rt stop`` (what
 systemd runs after a crash) loads neither onnxruntime nor the camera code.
@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import importlib
 import sys
+from typing import Any
 
 from jetbot_rt import __version__, signals
 from jetbot_rt.errors import EXIT_USAGE, UsageError
@@ -28,15 +29,39 @@ COMMANDS = {
 }
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """Shows each option's default where it has one and the help does not already say it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            action.option_strings
+            and default not in (None, False, argparse.SUPPRESS)
+            and "default" not in text
+        ):
+            text += " (default: %(default)s)"
+        return text
+
+
+def plain(text: str) -> str:
+    """A docstring line for ``--help``: without reStructuredText's double backquotes."""
+    return text.replace("``", "")
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line and exit code 2."""
+    """argparse, but a usage error is one line and exit code 2, and defaults are shown."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
-    parser = OneLineParser(prog="jetbot-rt", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="jetbot-rt", description=plain(__doc__.splitlines()[0]))
     parser.add_argument("--version", action="version", version=f"jetbot-rt {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     modules = {}
@@ -73,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0].startswith("--") and argv[0] not in ("--help", "--version"):
+        argv = ["run", *argv]  # `jetbot-rt --backend sim` is `jetbot-rt run --backend sim`
     parser, modules = build_parser()
     # Only the chosen subcommand's module is imported to add its arguments.
     command = next((a for a in argv if not a.startswith("-")), None)

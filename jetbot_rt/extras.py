@@ -20,6 +20,13 @@ def this_python() -> str:
     return f"{sys.version_info[0]}.{sys.version_info[1]}"
 
 
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ValueError:  # sys.modules[module] is None: blocked, as good as absent
+        return False
+
+
 def sim_problem() -> str | None:
     """None when the simulator can run here, else one line saying what to do."""
     if sys.version_info < (3, 10):
@@ -27,7 +34,7 @@ def sim_problem() -> str | None:
             f"the simulator and the trainer need Python 3.10 or newer (this is {this_python()});"
             " run them on a workstation"
         )
-    if importlib.util.find_spec("pybullet") is None:
+    if not _installed("pybullet"):
         if sys.version_info[:2] not in SIM_PYTHONS:
             return (
                 f"pybullet has no wheel for Python {this_python()} (only 3.10 and 3.11); "

@@ -23,6 +23,7 @@ from jetbot_rt.actions import ActionPipeline, resolve_max_speed
 from jetbot_rt.config import Config, load_config, set_value
 from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE, Fault, UsageError, first_line
 from jetbot_rt.hal import BackendOptions, make_backend
+from jetbot_rt.hal.registry import BACKEND_MODULES
 from jetbot_rt.loop import ControlLoop
 from jetbot_rt.policy import OnnxPolicy, bundled_policy_path, shown
 from jetbot_rt.recorder import Recorder, recording_line
@@ -39,12 +40,17 @@ class _Cancelled(BaseException):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--backend", required=True, help="sim or real")
+    parser.add_argument("--backend", required=True, choices=sorted(BACKEND_MODULES),
+                        help="sim: the PyBullet simulation; real: the JetBot's motors and camera")
     parser.add_argument("--policy", help="ONNX policy (default: the bundled forward policy)")
-    parser.add_argument("--config", help="TOML config file")
-    parser.add_argument("--rate", type=float, help="control rate in Hz (default 30)")
-    parser.add_argument("--max-speed", type=float, help="duty at |mu| = 1, in (0, 1]")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--config", help="TOML config file (default: every key at its default)")
+    parser.add_argument("--rate", type=float,
+                        help="control rate in Hz (default: [loop] rate_hz, 30)")
+    parser.add_argument("--max-speed", type=float,
+                        help="duty at |mu| = 1, in (0, 1] (default: [actions] max_speed, else "
+                             "the model's metadata, else 0.1)")
+    parser.add_argument("--duration", type=float,
+                        help="stop after this many seconds (default: run until stopped)")
     parser.add_argument("--telemetry", help="write JSON Lines telemetry to this file")
     parser.add_argument("--record", metavar="DIR",
                         help="record every tick's frame and record into this new directory "
@@ -232,6 +238,22 @@ class Runtime:
                 "(lower --rate or use a smaller model)"
             )
 
+    def follow_gui_pace(self) -> None:
+        """PyBullet's window on a laptop without a GPU (software OpenGL) makes every world
+        step wait for a redraw: hundreds of ms. The simulation then runs slower than real time
+        (each tick still advances it by one period) and the watchdog allows for it."""
+        slowest = 0.0
+        for _ in range(3):  # the motors are at zero: the robot stands still
+            t0 = time.perf_counter()
+            self.backend.advance(self.config.loop.period)
+            slowest = max(slowest, time.perf_counter() - t0)
+        loop_cfg = self.config.loop
+        if 5 * slowest > loop_cfg.watchdog_timeout_s:
+            loop_cfg.watchdog_timeout = 5 * slowest
+            print(f"--gui: a simulation step takes up to {slowest * 1e3:.0f} ms here, so the "
+                  f"simulation runs slower than real time; watchdog timeout "
+                  f"{loop_cfg.watchdog_timeout:.2f} s", flush=True)
+
     def _install_signal_handlers(self) -> None:
         def handler(signum: int, _frame: Any) -> None:
             # Python runs this in the main thread between two bytecodes, possibly while that
@@ -295,6 +317,8 @@ class Runtime:
             if self.latch.tripped:
                 raise _Cancelled
             self.warm_up(policy)
+            if self.args.gui and not self.latch.tripped:
+                self.follow_gui_pace()
             if self.latch.tripped:
                 raise _Cancelled
             return self._drive(policy)
@@ -344,6 +368,7 @@ class Runtime:
         loop_thread = threading.Thread(
             target=self.loop.run, args=(self.args.duration,), name="jetbot-rt-loop", daemon=True
         )
+        print(f"driving at {loop_cfg.rate_hz:g} Hz; Ctrl-C or `jetbot-rt stop` to stop", flush=True)
         self.watchdog.start()
         loop_thread.start()
         while loop_thread.is_alive() and not self.latch.tripped:
@@ -422,6 +447,9 @@ def print_summary(summary: dict[str, Any], rate_hz: float) -> None:
             f"p99 {summary['tick_ms_p99']:.2f} ms",
             f"  overruns     {summary['overruns']}",
         ]
+    if "travelled_m" in summary:
+        lines.append(f"  travelled    {summary['travelled_m']:.2f} m; ends "
+                     f"{summary['goal_distance_m']:.2f} m from the goal block")
     if "i2c_retried" in summary:
         lines.append(f"  i2c retried  {summary['i2c_retried']} transfers")
     if summary.get("telemetry_lost"):

@@ -99,7 +99,7 @@ def resolve(target: Target, work: Path) -> dict[str, str]:
     cert = os.environ.get("PIP_CERT")
     if cert:
         command += ["--cert", cert]
-    result = subprocess.run(command + [f"{REPO}[jetson]"], capture_output=True, text=True)
+    result = subprocess.run([*command, f"{REPO}[jetson]"], capture_output=True, text=True)
     if result.returncode != 0:
         fail(f"{target.name}: pip cannot resolve '.[jetson]' from wheels:\n{result.stderr}")
     installs = json.loads(report.read_text())["install"]

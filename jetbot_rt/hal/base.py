@@ -68,6 +68,7 @@ class Backend:
     close: Callable[[], None] = field(default=lambda: None)
     telemetry: Callable[[], dict[str, object]] | None = None
     """Extra per-tick telemetry fields (the sim adds the robot's ``pose``)."""
-    counters: Callable[[], dict[str, int]] | None = None
-    """Counts of faults the backend rode through by itself (the real backend's
-    ``i2c_retried``), added to the run summary and the ``end`` event."""
+    counters: Callable[[], dict[str, float]] | None = None
+    """Added to the run summary and the ``end`` event: counts of faults the backend rode
+    through by itself (the real backend's ``i2c_retried``), what the simulated robot did (the
+    sim's ``travelled_m``, ``goal_distance_m``)."""

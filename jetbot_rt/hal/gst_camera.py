@@ -35,6 +35,11 @@ if TYPE_CHECKING:
 
 GST_LAUNCH = "gst-launch-1.0"
 ARGUS_HINT = "for the CSI camera try: sudo systemctl restart nvargus-daemon"
+NO_ARGUS = 'no element "nvarguscamerasrc"'
+NO_ARGUS_HINT = (
+    "this machine has no nvarguscamerasrc, so no CSI camera: it is not a Jetson, or JetPack's "
+    'GStreamer plugins are missing; for a USB camera set [camera] source = "usb:/dev/video0"'
+)
 PR_SET_PDEATHSIG = 1
 SCALE_METHOD = "hermite"
 """videoscale's multi-tap Hermite filter: it widens with the scale factor, so a 1280x720
@@ -194,7 +199,7 @@ class GstCamera(Camera):
             if self._stderr:
                 reason += f": {message}"
         if self.config.source == "csi":
-            reason += f" ({ARGUS_HINT})"
+            reason += f" ({NO_ARGUS_HINT if NO_ARGUS in message else ARGUS_HINT})"
         raise UsageError(reason)
 
     def _read_frames(self) -> None:

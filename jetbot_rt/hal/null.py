@@ -4,15 +4,10 @@ write. Used by the benchmarks to measure the loop itself, and by tests of the lo
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from jetbot_rt.hal.base import Backend, Camera, Drive, Frame
-
-if TYPE_CHECKING:
-    from jetbot_rt.config import Config
-    from jetbot_rt.hal.registry import BackendOptions
+from jetbot_rt.hal.base import Camera, Drive, Frame
 
 
 class NullCamera(Camera):
@@ -44,7 +39,3 @@ class NullDrive(Drive):
         self.last = (0.0, 0.0)
         self.writes += 1
 
-
-def build_backend(config: Config, options: BackendOptions) -> Backend:
-    width, height = options.frame_size
-    return Backend(camera=NullCamera(width, height), drive=NullDrive())

@@ -17,7 +17,6 @@ if TYPE_CHECKING:
 BACKEND_MODULES: dict[str, str] = {
     "sim": "jetbot_rt.sim.backend",
     "real": "jetbot_rt.hal.real",
-    "null": "jetbot_rt.hal.null",
 }
 
 

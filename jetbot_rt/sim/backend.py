@@ -86,15 +86,26 @@ def build_backend(config: Config, options: BackendOptions) -> Backend:
     camera = SimCamera(world, config.sim)
     drive = SimDrive(world)
 
+    # What the robot did, kept up to date here: the summary is built after the world closed.
+    done = {"travelled_m": 0.0, "goal_distance_m": world.distance_to_block()}
+
     def advance(dt: float) -> None:
+        x0, y0, _ = world.robot_pose()
         world.step(dt)
+        x1, y1, _ = world.robot_pose()
+        done["travelled_m"] += math.hypot(x1 - x0, y1 - y0)
+        done["goal_distance_m"] = world.distance_to_block()
         camera.capture()
 
     def telemetry() -> dict[str, object]:
         return {"pose": list(world.robot_pose()), "sim_time": world.sim_time}
 
+    def counters() -> dict[str, float]:
+        return {key: round(value, 3) for key, value in done.items()}
+
     def close() -> None:
         camera.stop()
         world.close()
 
-    return Backend(camera=camera, drive=drive, advance=advance, close=close, telemetry=telemetry)
+    return Backend(camera=camera, drive=drive, advance=advance, close=close, telemetry=telemetry,
+                   counters=counters)

@@ -100,7 +100,11 @@ class JetbotWorld:
             raise UsageError("cannot open a PyBullet " + ("window" if gui else "client"))
         self._gui = gui
         if gui:
-            p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=self._client)
+            # The side panel shows the robot's camera (each render's RGB), nothing else.
+            for flag, on in ((p.COV_ENABLE_GUI, 1), (p.COV_ENABLE_RGB_BUFFER_PREVIEW, 1),
+                             (p.COV_ENABLE_DEPTH_BUFFER_PREVIEW, 0),
+                             (p.COV_ENABLE_SEGMENTATION_MARK_PREVIEW, 0)):
+                p.configureDebugVisualizer(flag, on, physicsClientId=self._client)
             p.resetDebugVisualizerCamera(
                 1.6, 0.0, -45.0, (-0.2, 0.0, 0.0), physicsClientId=self._client
             )
