@@ -12,7 +12,7 @@ import os
 import sys
 from pathlib import Path
 
-from jetbot_rt.cli import OneLineParser
+from jetbot_rt.cli import OneLineParser, plain
 from jetbot_rt.config import load_config
 from jetbot_rt.errors import EXIT_OK, EXIT_USAGE, UsageError
 
@@ -28,10 +28,11 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(prog="jetbot-train", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="jetbot-train", description=plain(__doc__.splitlines()[0]))
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
 
-    train = sub.add_parser("train", help="train a policy with PPO in the PyBullet sim")
+    train = sub.add_parser("train", help="train a policy with PPO in the PyBullet sim",
+                           description="train a policy with PPO in the PyBullet sim")
     train.add_argument("--task", default="forward", help="task name (default forward)")
     train.add_argument("--timesteps", type=_positive_int, required=True,
                        help="environment steps in total, over all envs")
@@ -46,19 +47,22 @@ def build_parser() -> argparse.ArgumentParser:
                             "extra; docs/TRAINING.md)")
     train.add_argument("--out", required=True, help="output directory")
     train.add_argument("--config", help="TOML config (sim, actions, loop sections are used)")
-    train.add_argument("--seed", type=int, default=1)
+    train.add_argument("--seed", type=int, default=1, help="seed of the envs and of PPO")
     train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    export = sub.add_parser("export", help="export a checkpoint to ONNX (with a parity check)")
-    export.add_argument("--checkpoint", required=True)
+    export = sub.add_parser("export", help="export a checkpoint to ONNX (with a parity check)",
+                            description="export a checkpoint to ONNX (with a parity check)")
+    export.add_argument("--checkpoint", required=True, help="checkpoint.pt written by train")
     export.add_argument("--out", required=True, help="ONNX file to write")
-    export.add_argument("--opset", type=_positive_int, default=16)
+    export.add_argument("--opset", type=_positive_int, default=16, help="ONNX opset")
 
-    evaluate = sub.add_parser("eval", help="evaluate an ONNX policy deterministically (mu)")
+    evaluate = sub.add_parser("eval", help="evaluate an ONNX policy deterministically (mu)",
+                              description="evaluate an ONNX policy deterministically (mu)")
     evaluate.add_argument("--policy", help="ONNX file (default: the bundled policy)")
-    evaluate.add_argument("--task", default="forward")
-    evaluate.add_argument("--episodes", type=_positive_int, default=100)
+    evaluate.add_argument("--task", default="forward", help="task name")
+    evaluate.add_argument("--episodes", type=_positive_int, default=100,
+                          help="episodes to run")
     evaluate.add_argument("--num-envs", type=_positive_int, default=os.cpu_count() or 1,
                           help="worker processes (default: one per core)")
     evaluate.add_argument("--seed", type=int, default=10_000,
