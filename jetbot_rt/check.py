@@ -72,7 +72,8 @@ def spin_wheels(config: Config) -> str:
     # stop short (deferred), it is raised once the board is off.
     drive = open_drive(config.motors)
     try:
-        for left, right in ((SPIN_DUTY, 0.0), (0.0, SPIN_DUTY)):
+        left_sign, right_sign = config.actions.sign  # forward as the runtime drives it
+        for left, right in ((SPIN_DUTY * left_sign, 0.0), (0.0, SPIN_DUTY * right_sign)):
             drive.write(left, right)
             time.sleep(SPIN_SECONDS)
             drive.write(0.0, 0.0)
@@ -81,7 +82,8 @@ def spin_wheels(config: Config) -> str:
         with signals.deferred():
             drive.stop()
             drive.close()
-    return f"left, then right wheel forward at duty {SPIN_DUTY} for {SPIN_SECONDS} s; all off"
+    return (f"left, then right wheel forward (sign {list(config.actions.sign)}) at duty "
+            f"{SPIN_DUTY} for {SPIN_SECONDS} s; all off")
 
 
 def check_camera(config: Config, size: tuple[int, int], frames: int) -> str:
@@ -143,10 +145,12 @@ def _policy_path(args: argparse.Namespace, config: Config) -> Path:
 
 def describe_policy(description: dict[str, Any]) -> str:
     width, height = description["size"]
+    clip = description["clip"]
+    clipped = "" if clip is None else f" clip {clip:g}"
     return (
         f"{description['path']}: input {description['input']} {description['layout']} "
         f"{width}x{height} {description['dtype']} {description['color_order']} "
-        f"{description['pixel_range']}; action output {description['action_output']}; "
+        f"{description['pixel_range']}{clipped}; action output {description['action_output']}; "
         f"max_speed {description['max_speed']}; running on {', '.join(description['providers'])}"
     )
 

@@ -81,6 +81,7 @@ class InputSpec:
     dtype: Any
     color_order: str  # RGB or BGR
     pixel_range: str  # 0-255, 0-1 or -1-1
+    clip: float | None = None  # then values are clipped to [-clip, clip]
 
 
 def _dim(value: Any) -> int | None:
@@ -209,8 +210,11 @@ class OnnxPolicy:
                 f"policy {path}: unsupported metadata color_order={color!r} "
                 f"pixel_range={pixel_range!r}"
             )
+        if config.clip is not None and _DTYPES[model_input.type] == np.uint8:
+            raise UsageError(f"policy {path}: [policy] clip needs a float input, "
+                             f"{model_input.name} is uint8")
         return InputSpec(model_input.name, layout, int(width), int(height),
-                         _DTYPES[model_input.type], color, pixel_range)
+                         _DTYPES[model_input.type], color, pixel_range, config.clip)
 
     @staticmethod
     def _action_output(session: Any, path: str) -> str:
@@ -251,6 +255,8 @@ class OnnxPolicy:
                 tensor *= 1.0 / 255.0
             elif spec.pixel_range == "-1-1":
                 tensor = tensor * (2.0 / 255.0) - 1.0
+            if spec.clip is not None:
+                np.clip(tensor, -spec.clip, spec.clip, out=tensor)
             tensor = tensor.astype(spec.dtype, copy=False)
         if spec.layout == "NCHW":
             tensor = tensor.transpose(2, 0, 1)
@@ -278,6 +284,7 @@ class OnnxPolicy:
             "dtype": np.dtype(spec.dtype).name,
             "color_order": spec.color_order,
             "pixel_range": spec.pixel_range,
+            "clip": spec.clip,
             "action_output": self.action_output,
             "max_speed": self.max_speed,
             "providers": self.providers,

@@ -320,3 +320,51 @@ def unknown_operator(path: Path) -> Path:
     model.ir_version = 8
     onnx.save(model, str(path))
     return path
+
+
+def rl_games_actor_critic(path: Path, size: int = 224, seed: int = 0) -> Path:
+    """rl_games ``actor_critic`` with the seed's cnn: convs 32x8/4, 64x4/2, 64x3/1 (relu),
+    mlp [512] elu, mu and value heads, a fixed log_std; NHWC input permuted inside. At 224x224
+    it has the seed's 19 M parameters (75 MB); tests use a smaller ``size``."""
+    rng = np.random.default_rng(seed)
+    weights = []
+
+    def init(name: str, *shape: int) -> str:
+        fan_in = int(np.prod(shape[1:])) if len(shape) > 1 else shape[0]
+        value = rng.normal(0.0, 1.0 / np.sqrt(fan_in), shape).astype(np.float32)
+        weights.append(numpy_helper.from_array(value, name))
+        return name
+
+    nodes = [helper.make_node("Transpose", ["obs"], ["x0"], perm=[0, 3, 1, 2])]
+    channels, side, x = 3, size, "x0"
+    for i, (out, kernel, stride) in enumerate([(32, 8, 4), (64, 4, 2), (64, 3, 1)], start=1):
+        nodes.append(helper.make_node(
+            "Conv", [x, init(f"conv{i}.w", out, channels, kernel, kernel),
+                     init(f"conv{i}.b", out)], [f"c{i}"], strides=[stride, stride]))
+        nodes.append(helper.make_node("Relu", [f"c{i}"], [f"x{i}"]))
+        channels, side, x = out, (side - kernel) // stride + 1, f"x{i}"
+    flat = channels * side * side
+    nodes += [
+        helper.make_node("Flatten", [x], ["flat"]),
+        helper.make_node("Gemm", ["flat", init("mlp.w", 512, flat), init("mlp.b", 512)],
+                         ["h"], transB=1),
+        helper.make_node("Elu", ["h"], ["hidden"]),
+        helper.make_node("Gemm", ["hidden", init("mu.w", 2, 512), init("mu.b", 2)], ["mu"],
+                         transB=1),
+        helper.make_node("Gemm", ["hidden", init("value.w", 1, 512), init("value.b", 1)],
+                         ["value"], transB=1),
+        helper.make_node("Constant", [], ["log_std"],
+                         value=numpy_helper.from_array(np.zeros((1, 2), np.float32))),
+    ]
+    graph = helper.make_graph(
+        nodes, "rl_games_actor_critic",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [1, size, size, 3])],
+        [helper.make_tensor_value_info(name, TensorProto.FLOAT, shape)
+         for name, shape in (("mu", [1, 2]), ("log_std", [1, 2]), ("value", [1, 1]))],
+        initializer=weights,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+    model.ir_version = 8  # what onnxruntime 1.19 (the last for Python 3.8) reads
+    onnx.checker.check_model(model)
+    onnx.save(model, path)
+    return path

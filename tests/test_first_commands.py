@@ -123,3 +123,21 @@ def test_gui_under_a_software_rendered_display_keeps_driving(tmp_path) -> None:
     assert "stopped      duration 3 s reached" in result.stdout
     ticks = int(re.search(r"ticks\s+(\d+)", result.stdout).group(1))
     assert ticks >= 2
+
+
+def test_spin_turns_each_wheel_forward_as_the_runtime_would(robot) -> None:  # noqa: F811
+    """docs/HARDWARE.md: check --spin shows which way each wheel turns; with [actions] sign
+    it pulses the direction the runtime calls forward."""
+    from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+
+    chip = PCA9685Emulator(0x60, state_file=robot / "chip.json")
+    config = write_config(robot, "gst:videotestsrc is-live=true")
+    config.write_text(config.read_text() + "[actions]\nsign = [1, -1]\n")
+    result = check(robot, config, "--spin")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "sign [1, -1]" in rows(result.stdout)["spin"]
+    chip.refresh()
+    # waveshare: left forward on output 1; the right wheel's -1 puts its pulse on output 3
+    assert chip.peak_duty[1] > 0 and chip.peak_duty[3] > 0
+    assert chip.peak_duty[0] == chip.peak_duty[2] == 0.0
+    assert chip.all_off()

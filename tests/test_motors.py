@@ -217,3 +217,29 @@ def test_motorhat_every_motors_enable_comes_back_after_a_stop(chip, left, right,
     # effective duty, not the full-on bit alone: the stop's full-off bit would win over it
     assert chip.channel(pwm[0]).duty == 1.0 and chip.channel(pwm[1]).duty == 1.0
     assert not chip.all_off()
+
+
+# ---- the earlier Waveshare revision: outputs 8-13, driven as NVIDIA's jetbot drove it -----
+
+# Before jetbot's commit "Handle the new revision of Waveshare board", jetbot drove the
+# Waveshare board through Adafruit_MotorHAT: left = MotorHAT motor 1 (PWM 8, IN2 9, IN1 10),
+# right = motor 2 (PWM 13, IN2 12, IN1 11), and a positive value ran BACKWARD: IN2 on, IN1 off.
+JETBOT_FORWARD_IN2 = (9, 12)
+JETBOT_FORWARD_IN1 = (10, 11)
+
+
+def test_older_waveshare_revision_as_documented_matches_jetbots_writes(chip) -> None:
+    """docs/HARDWARE.md: layout = "adafruit_motorhat", sign = [1, -1] drives outputs 8-13
+    in jetbot's directions (MotorKit's motor2 turns the other way from the old library's)."""
+    from jetbot_rt.actions import ActionPipeline
+
+    actions = ActionPipeline(max_speed=0.5, sign=(1, -1))
+    drive = motorhat(chip)
+    drive.write(*actions.duties([1.0, 1.0]))  # forward
+    assert chip.channel(8).full_on and chip.channel(13).full_on  # the enables
+    assert outputs(chip, JETBOT_FORWARD_IN2) == pytest.approx([0.5, 0.5], abs=STEP)
+    assert outputs(chip, JETBOT_FORWARD_IN1) == [0.0, 0.0]
+    drive.write(*actions.duties([-1.0, -1.0]))  # reverse: IN1 active, as jetbot's FORWARD
+    assert outputs(chip, JETBOT_FORWARD_IN1) == pytest.approx([0.5, 0.5], abs=STEP)
+    assert outputs(chip, JETBOT_FORWARD_IN2) == [0.0, 0.0]
+    assert chip.duties()[:4] == [0.0] * 4  # nothing on the newer revision's outputs
