@@ -114,7 +114,7 @@ class PolicyConfig:
     """Override the channel order the model expects (metadata, else RGB)."""
     pixel_range: str | None = field(default=None, metadata=_one_of(PIXEL_RANGES))
     """Override the pixel range the model expects (metadata, else 0-255)."""
-    clip: float | None = field(default=None, metadata=_positive())
+    clip: float | None = field(default=None, metadata=_within(0.001, 1e6))
     """Clip the input values to [-clip, clip] after scaling to pixel_range, as training did:
     rl_games' clip_observations (Isaac Lab's clip_obs, 5.0) clips raw 0..255 pixels to 0..5."""
     threads: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 64, "1..64"))
