@@ -32,5 +32,19 @@ robot_tests=(
     tests/test_policy.py tests/test_safety.py tests/test_loop.py tests/test_notify.py
     tests/test_check.py tests/test_stop.py tests/test_real_backend_e2e.py
     tests/test_runtime_errors.py tests/test_gst_camera.py tests/test_fault_input.py
+    tests/test_byo_policy.py
 )
-exec "$venv/bin/python" -m pytest -q -p no:cacheprovider "${robot_tests[@]}" "$@"
+"$venv/bin/python" -m pytest -q -p no:cacheprovider "${robot_tests[@]}" "$@"
+
+# The workstation-only commands refuse in one line (exit 2) instead of a traceback.
+for command in "jetbot-train --help" "jetbot-rt run --backend sim --duration 1"; do
+    set +e
+    err=$("$venv/bin/"$command 2>&1 >/dev/null)
+    code=$?
+    set -e
+    if [[ $code != 2 || $(wc -l <<<"$err") != 1 || $err != *"need Python 3.10 or newer"* ]]; then
+        echo "test_python38: '$command' on Python 3.8: exit $code, stderr: $err" >&2
+        exit 1
+    fi
+done
+echo "test_python38: jetbot-train and --backend sim refuse Python 3.8 in one line (exit 2)"

@@ -33,6 +33,7 @@ OUT_OF_RANGE = {
     ("policy", "layout"): "NWHC",
     ("policy", "color_order"): "GBR",
     ("policy", "pixel_range"): "0-65535",
+    ("policy", "clip"): 0,
     ("policy", "threads"): 0,
     ("policy", "providers"): None,  # any list of names: unknown ones are skipped, CPU remains
     ("actions", "max_speed"): 1.5,

@@ -3,6 +3,7 @@ python3.8), and the wheel built on a workstation carries everything the robot ne
 
 from __future__ import annotations
 
+import ast
 import shutil
 import subprocess
 import sys
@@ -47,6 +48,69 @@ def test_the_3_8_check_catches_what_3_8_lacks(tmp_path):
     result = vermin(source)
     assert result.returncode != 0
     assert "zip(strict)" in result.stdout
+
+
+# Subscripted at run time, these need Python 3.9 (PEP 585); in annotations they are strings
+# (``from __future__ import annotations``), which vermin checks; vermin does not see them in
+# a module-level alias such as ``Handler = Callable[[int], None]``.
+PEP585 = {"list", "dict", "tuple", "set", "frozenset", "type", "Callable", "Iterator",
+          "Iterable", "Sequence", "Mapping", "MutableMapping", "Generator", "Awaitable"}
+
+
+def runtime_generics(source: str) -> list[int]:
+    """Lines where a PEP 585 generic or an ``X | None`` is evaluated at run time."""
+    tree = ast.parse(source)
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        annotations = []
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            annotations = [a.annotation for a in (*node.args.args, *node.args.kwonlyargs,
+                                                  *node.args.posonlyargs) if a.annotation]
+            annotations += [node.returns] if node.returns else []
+            annotations += [a.annotation for a in (node.args.vararg, node.args.kwarg)
+                            if a is not None and a.annotation]
+        elif isinstance(node, ast.AnnAssign):
+            annotations = [node.annotation]
+        elif isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            annotations = node.body
+        for annotation in annotations:
+            skip.update(id(n) for n in ast.walk(annotation))
+    found = []
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.Subscript):
+            name = node.value.attr if isinstance(node.value, ast.Attribute) else getattr(
+                node.value, "id", None)
+            if name in PEP585:
+                found.append(node.lineno)
+        elif isinstance(node, ast.BinOp) and isinstance(node.op, ast.BitOr) and any(
+            (isinstance(side, ast.Constant) and side.value is None)
+            or (isinstance(side, ast.Name) and side.id in {"int", "float", "str", "bool"})
+            for side in (node.left, node.right)
+        ):
+            found.append(node.lineno)
+    return sorted(found)
+
+
+def test_robot_side_evaluates_no_newer_typing_at_run_time():
+    offenders = {
+        str(path.relative_to(REPO)): lines
+        for path in robot_side_modules()
+        if (lines := runtime_generics(path.read_text()))
+    }
+    assert not offenders, f"evaluated at run time, needs Python 3.9+: {offenders}"
+
+
+def test_the_run_time_typing_check_can_fail():
+    source = (
+        "from __future__ import annotations\n"
+        "from collections.abc import Callable\n"
+        "Handler = Callable[[int], None]\n"
+        "def f(x: list[int] | None) -> dict[str, int]:\n"
+        "    return isinstance(x, int | None)\n"
+    )
+    assert runtime_generics(source) == [3, 5]
 
 
 def build_wheel(out: Path) -> Path:
