@@ -20,8 +20,8 @@ RUN_CLI = [sys.executable, "-m", "jetbot_rt.cli"]
 def test_backend_without_run_is_run(capfd) -> None:
     # `jetbot-rt --backend sim` is `jetbot-rt run --backend sim`: the run's own error shows it
     assert cli.main(["--backend", "sim", "--rate", "0"]) == 2
-    err = capfd.readouterr().err.strip().splitlines()
-    assert err == ["jetbot-rt run: error: --rate: [loop] rate_hz must be a number > 0, got 0.0"]
+    (line,) = capfd.readouterr().err.strip().splitlines()
+    assert line.startswith("jetbot-rt run: error: --rate: [loop] rate_hz must be"), line
 
 
 def test_backend_choices_are_listed_and_null_is_gone(capfd) -> None:
