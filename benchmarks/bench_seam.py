@@ -5,7 +5,7 @@ the size and pooling costs and gains.
 
     python benchmarks/bench_seam.py [--sizes 56 64 84] [--poses 40] [--out benchmarks/results]
 
-Writes seam.json, seam.md and seam.png (reference | direct | 2x pooled, per size) to --out.
+Writes seam.json and seam.png (area-averaged reference | direct | 2x pooled, per size) to --out.
 """
 
 from __future__ import annotations
