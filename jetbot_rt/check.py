@@ -18,6 +18,7 @@ from typing import Any
 from jetbot_rt import signals
 from jetbot_rt.config import Config, load_config
 from jetbot_rt.errors import UsageError, first_line
+from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
 
 SPIN_DUTY = 0.3
 SPIN_SECONDS = 0.5
@@ -185,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
         rows.append(_row("spin", lambda: spin_wheels(config)))
         owner.release()  # the wheels are done: a stop need not wait for the camera rows
 
-    size = (224, 224)
+    size = DEFAULT_FRAME_SIZE
     described: dict[str, Any] = {}
 
     def load_policy() -> str:

@@ -8,6 +8,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+DEFAULT_FRAME_SIZE = (224, 224)
+"""(width, height) of camera frames where no policy says otherwise: the input of the first
+bundled policy (forward.onnx). A run takes the size from its policy's ONNX input; the trainer's
+size is ``jetbot_rt.train.env.POLICY_IMAGE_SIZE``."""
+
 
 @dataclass(frozen=True)
 class Frame:

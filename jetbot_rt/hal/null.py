@@ -7,11 +7,12 @@ import time
 
 import numpy as np
 
-from jetbot_rt.hal.base import Camera, Drive, Frame
+from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE, Camera, Drive, Frame
 
 
 class NullCamera(Camera):
-    def __init__(self, width: int = 224, height: int = 224) -> None:
+    def __init__(self, width: int = DEFAULT_FRAME_SIZE[0],
+                 height: int = DEFAULT_FRAME_SIZE[1]) -> None:
         self._image = np.full((height, width, 3), 128, dtype=np.uint8)
         self._count = 0
 

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 from jetbot_rt.errors import UsageError
 from jetbot_rt.extras import sim_problem
+from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
 
 if TYPE_CHECKING:
     from jetbot_rt.config import Config
@@ -23,7 +24,8 @@ BACKEND_MODULES: dict[str, str] = {
 class BackendOptions:
     """Run-time facts a backend may need beyond the config file."""
 
-    def __init__(self, frame_size: tuple[int, int] = (224, 224), gui: bool = False) -> None:
+    def __init__(self, frame_size: tuple[int, int] = DEFAULT_FRAME_SIZE,
+                 gui: bool = False) -> None:
         self.frame_size = frame_size  # (width, height) the policy wants
         self.gui = gui
 

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from jetbot_rt.errors import UsageError
+from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
 from jetbot_rt.sim import appearance
 from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
 from jetbot_rt.sim.motor import WheelMotors
@@ -38,11 +39,6 @@ CAMERA_FAR = 5.0
 """m; the room's diagonal is 4.2 m."""
 GRAVITY = -9.81
 BLOCK_HALF_SIZE = 0.025
-
-DEFAULT_IMAGE_SIZE = (224, 224)
-"""(width, height) of a world built without ``image_size``: the bundled forward policy's
-input. The trainer's size is ``jetbot_rt.train.env.POLICY_IMAGE_SIZE``; the runtime renders
-at whatever size the policy's ONNX input declares."""
 
 LEFT, RIGHT, CAMERA_LINK = 0, 1, 3  # joint/link indices in jetbot.urdf's order
 _WHEELS = (LEFT, RIGHT)
@@ -83,7 +79,7 @@ class JetbotWorld:
         sim: SimConfig,
         *,
         gui: bool = False,
-        image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE,
+        image_size: tuple[int, int] = DEFAULT_FRAME_SIZE,
     ) -> None:
         self._sim = sim
         self._dt_physics = 1.0 / sim.physics_hz
