@@ -1,0 +1,153 @@
+"""The recorder's writer process (``python -m jetbot_rt.record_writer CONFIG_JSON``).
+
+A process of its own, at the lowest CPU priority, so that encoding never holds the control
+loop's interpreter lock, nor its core. The runtime passes frames through a shared memory
+(``slots`` frames, inherited as a file descriptor) and one JSON line per record on stdin:
+``{"r": record, "s": slot or null}``. The writer encodes the slot's frame, writes the record
+with its ``frame`` index, and counts in the shared header; the runtime reuses a slot once
+``header[DONE]`` has passed it. It ends when stdin closes (the runtime ended or died).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import mmap
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from jetbot_rt.telemetry import dumps, finite
+
+HEADER_BYTES = 4096
+DONE, WRITTEN, RECORDS, LOST, ERROR = range(5)
+"""int64 counters at the start of the header; the error text follows at ERROR_TEXT."""
+ERROR_TEXT = 64
+FRAMES_FILE = "frames.mkv"
+FOURCC = "FFV1"  # lossless; pip's opencv-python(-headless) writes it through its FFmpeg
+
+
+def layout(mm: mmap.mmap, slots: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The header counters and the frame slots over the shared memory."""
+    width, height = size
+    header = np.frombuffer(mm, np.int64, count=8)
+    frames = np.frombuffer(mm, np.uint8, count=slots * height * width * 3,
+                           offset=HEADER_BYTES).reshape(slots, height, width, 3)
+    return header, frames
+
+
+class Writer:
+    def __init__(self, config: dict[str, Any], mm: mmap.mmap) -> None:
+        self.path = Path(config["path"])
+        self.min_free = float(config["min_free_mb"]) * 1e6
+        self.mm = mm
+        self.header, self.frames = layout(mm, config["slots"], tuple(config["frame_size"]))
+        self.error: str | None = None
+        self.run_summary: dict[str, Any] = {}
+        self.next_space_check = 0.0
+        self.ticks = open(self.path / "ticks.jsonl", "w", encoding="utf-8")  # noqa: SIM115
+        self.video = cv2.VideoWriter(str(self.path / FRAMES_FILE),
+                                     cv2.VideoWriter_fourcc(*FOURCC), config["rate_hz"],
+                                     tuple(config["frame_size"]))
+
+    def handle(self, message: dict[str, Any]) -> None:
+        slot = message.get("s")
+        try:
+            if "close" in message:
+                self.run_summary = message["close"]
+            elif self.error is not None:
+                self.header[LOST] += 1
+            else:
+                self.write(message["r"], slot)
+        except (OSError, ValueError, cv2.error) as exc:
+            self.fail(exc)
+        finally:
+            if slot is not None:
+                self.header[DONE] += 1  # the slot is free again
+
+    def write(self, record: dict[str, Any], slot: int | None) -> None:
+        if os.fstat(self.ticks.fileno()).st_nlink == 0:
+            raise FileNotFoundError("directory removed while recording")
+        self.check_space()
+        if "event" not in record:
+            record["frame"] = None
+            if slot is not None:
+                self.video.write(np.ascontiguousarray(self.frames[slot][:, :, ::-1]))  # BGR
+                record["frame"] = int(self.header[WRITTEN])
+                self.header[WRITTEN] += 1
+            self.header[RECORDS] += 1
+        self.ticks.write(dumps(record) + "\n")
+        self.ticks.flush()
+
+    def check_space(self) -> None:
+        """Once a second: the video writer cannot report a full disk, so look before it is."""
+        now = time.monotonic()
+        if now < self.next_space_check:
+            return
+        self.next_space_check = now + 1.0
+        disk = os.statvfs(self.path)
+        free = disk.f_bavail * disk.f_frsize
+        if free < self.min_free:
+            raise OSError(errno.ENOSPC, f"disk nearly full: {free / 1e6:.0f} MB free, "
+                          f"[record] min_free_mb is {self.min_free / 1e6:g}")
+
+    def fail(self, exc: BaseException) -> None:
+        self.error = str(getattr(exc, "strerror", None) or exc)
+        self.header[LOST] += 1
+        text = self.error.encode()[: HEADER_BYTES - ERROR_TEXT - 1]
+        self.mm[ERROR_TEXT:ERROR_TEXT + len(text)] = text
+        self.header[ERROR] = 1
+        print(f"jetbot-rt: recording {self.path} stopped ({self.error}); still driving",
+              file=sys.stderr, flush=True)
+
+    def finish(self) -> None:
+        with contextlib.suppress(Exception):
+            self.video.release()
+        with contextlib.suppress(OSError, ValueError):
+            self.ticks.close()
+        runtime = self.run_summary.pop("recorder", {})
+        counts = {"path": str(self.path), "frames_written": int(self.header[WRITTEN]),
+                  "frames_dropped": runtime.get("frames_dropped", 0),
+                  "records_written": int(self.header[RECORDS]),
+                  "records_lost": runtime.get("records_lost", 0) + int(self.header[LOST]),
+                  "error": self.error}
+        with contextlib.suppress(OSError):  # the directory may be gone: the error said so
+            (self.path / "summary.json").write_text(json.dumps(
+                finite({**counts, "run": self.run_summary}), indent=1) + "\n")
+
+
+def main() -> int:
+    # The runtime's terminal or service stop signals end the runtime; this process ends when
+    # the runtime's pipe closes, after writing what it was given.
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+        signal.signal(signum, signal.SIG_IGN)
+    with contextlib.suppress(OSError):
+        os.nice(19)
+    config = json.loads(sys.argv[1])
+    mm = mmap.mmap(config["fd"], 0)
+    writer = Writer(config, mm)
+    if not writer.video.isOpened():
+        print(f"error: this OpenCV ({cv2.__version__}) cannot write lossless {FOURCC} video; "
+              "install opencv-python-headless to record", flush=True)
+        return 2
+    print("ready", flush=True)
+    sys.stdout.close()
+    for line in sys.stdin.buffer:
+        try:
+            message = json.loads(line)
+        except ValueError:
+            continue
+        writer.handle(message)
+    writer.finish()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
