@@ -192,6 +192,9 @@ class RecordConfig:
     min_free_mb: float = field(default=64.0, metadata=_check(lambda v: v >= 0, "a number >= 0"))
     """The recording stops (the robot drives on) when the disk has less free space than this,
     so that a full SD card never starves the system's own logs."""
+    codec: str = field(default="huffyuv", metadata=_one_of(("huffyuv", "ffv1")))
+    """Lossless video codec of the frames: "huffyuv" (little CPU, larger files) or "ffv1"
+    (about a third smaller, eight times the CPU; docs/RECORDING.md)."""
 
 
 @dataclass

@@ -108,7 +108,7 @@ class Recorder:
                  rate_hz: float, *, queue_frames: int = 64,
                  fit: Callable[[np.ndarray], np.ndarray] | None = None,
                  blocking: bool = False, t0: float | None = None,
-                 min_free_mb: float = 64.0,
+                 min_free_mb: float = 64.0, codec: str = "huffyuv",
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.path = Path(path)
         prepare_directory(self.path)
@@ -124,7 +124,8 @@ class Recorder:
         self.closed = False
         self._broken: str | None = None
         meta = {"format": FORMAT, "version": VERSION, "frame_size": list(frame_size),
-                "rate_hz": rate_hz, "frames": FRAMES_FILE, "versions": versions(),
+                "rate_hz": rate_hz, "frames": FRAMES_FILE, "codec": codec,
+                "versions": versions(),
                 "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(),
                 **meta}
         try:
@@ -139,7 +140,8 @@ class Recorder:
             self.process = subprocess.Popen(
                 [sys.executable, "-m", "jetbot_rt.record_writer", json.dumps({
                     "path": str(self.path), "frame_size": [width, height], "rate_hz": rate_hz,
-                    "slots": queue_frames, "min_free_mb": min_free_mb, "fd": memory})],
+                    "slots": queue_frames, "min_free_mb": min_free_mb, "codec": codec,
+                    "fd": memory})],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, pass_fds=(memory,),
             )
         finally:
@@ -267,7 +269,8 @@ def open_for_run(config: Any, backend: str, policy: Any, max_speed: float,
     }
     return Recorder(expand_path(config.record.path), meta, (spec.width, spec.height),
                     config.loop.rate_hz, queue_frames=config.record.queue_frames,
-                    fit=policy.fit, t0=t0, min_free_mb=config.record.min_free_mb)
+                    fit=policy.fit, t0=t0, min_free_mb=config.record.min_free_mb,
+                    codec=config.record.codec)
 
 
 def recording_line(counts: dict[str, Any]) -> str:
