@@ -2,7 +2,7 @@
 
 Layout (docs/RECORDING.md, format version 1): ``meta.json`` (the run's config, policy, backend,
 versions), ``ticks.jsonl`` (one record per tick as telemetry writes it, plus ``frame``, and the
-events), ``frames.mkv`` (the frames as the policy received them, FFV1: lossless, so a replay
+events), ``frames.mkv`` (the frames as the policy received them, HuffYUV: lossless, so a replay
 reproduces ``mu`` to round-off) and, once the run ends, ``summary.json``.
 
 Encoding and writing happen in a writer process at the lowest CPU priority
