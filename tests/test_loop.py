@@ -126,7 +126,7 @@ def test_observers_see_each_tick_as_telemetry_records_it(tmp_path):
     telemetry.close()
     records = [json.loads(line) for line in path.read_text().splitlines()]
     assert len(seen) == loop.stats.ticks == len(records) >= 2
-    for result, record in zip(seen, records, strict=True):
+    for result, record in zip(seen, records):
         assert result.record(telemetry.t0) == record
         assert result.image.shape == (224, 224, 3) and result.image.dtype == np.uint8
     assert seen[0].mu == [0.5, -0.25] and seen[0].cmd == (0.05, -0.025)

@@ -42,6 +42,20 @@ def test_robot_side_needs_no_python_newer_than_3_8():
     assert result.returncode == 0, result.stdout + result.stderr
 
 
+def robot_side_tests() -> list[Path]:
+    """The test files scripts/test_python38.sh runs on Python 3.8 (its list is the source)."""
+    script = (REPO / "scripts" / "test_python38.sh").read_text()
+    block = script.split("robot_tests=(", 1)[1].split(")", 1)[0]
+    return [REPO / name for name in block.split()]
+
+
+def test_robot_side_tests_need_no_python_newer_than_3_8():
+    tests = robot_side_tests()
+    assert REPO / "tests" / "test_motors.py" in tests and all(t.is_file() for t in tests)
+    result = vermin(*tests)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
 def test_the_3_8_check_catches_what_3_8_lacks(tmp_path):
     source = tmp_path / "newer.py"
     source.write_text("def f(a, b):\n    return list(zip(a, b, strict=True))\n")
