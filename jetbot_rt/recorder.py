@@ -54,6 +54,8 @@ from jetbot_rt.telemetry import dumps
 FORMAT = "jetbot_rt.recording"
 VERSION = 1
 F_SETPIPE_SZ = 1031  # fcntl: a pipe's capacity (Linux)
+START_TIMEOUT = 20.0
+"""Seconds the writer process may take to start (import OpenCV, open the video file)."""
 CLOSE_TIMEOUT = 2.0
 """Seconds ``close`` waits for the writer; after that the run ends without it."""
 
@@ -148,7 +150,9 @@ class Recorder:
             os.close(memory)
         self._header, self._frames = layout(self._mm, queue_frames, frame_size)
         assert self.process.stdin is not None and self.process.stdout is not None
-        ready = self.process.stdout.readline().decode(errors="replace").strip()
+        ready = f"error: the writer did not start within {START_TIMEOUT:g} s"
+        if select.select([self.process.stdout], [], [], START_TIMEOUT)[0]:
+            ready = self.process.stdout.readline().decode(errors="replace").strip()
         if ready != "ready":
             self.process.kill()
             self.process.wait()
