@@ -64,6 +64,7 @@ OUT_OF_RANGE = {
     ("record", "path"): None,  # any string is a directory: an unusable one is tests/test_record
     ("record", "queue_frames"): 0,
     ("record", "min_free_mb"): -1.0,
+    ("record", "codec"): "mjpg",
     ("sim", "wheel_gain"): [1.0, 0.0],
     ("sim", "deadband"): 1.0,
     ("sim", "latency"): 1.5,
