@@ -111,6 +111,8 @@ class ControlServer:
         self._thread: threading.Thread | None = None
         self._closed = threading.Event()
         self._inode: int | None = None
+        self._wake: tuple[socket.socket, socket.socket] | None = None
+        """A socket pair: ``close()`` writes a byte so the selector returns at once."""
 
     def start(self) -> None:
         try:
@@ -135,17 +137,27 @@ class ControlServer:
             os.umask(old_umask)
         os.chmod(self.path, 0o600)
         self._inode = self.path.stat().st_ino
-        sock.listen(MAX_CLIENTS)
+        sock.listen(socket.SOMAXCONN)  # room for a burst; the server accepts at once
         sock.setblocking(False)
         self._sock = sock
+        self._wake = socket.socketpair()
+        for end in self._wake:
+            end.setblocking(False)
         self._thread = threading.Thread(target=self._serve, name="jetbot-rt-control", daemon=True)
         self._thread.start()
 
     def close(self) -> None:
         self._closed.set()
+        if self._wake is not None:
+            with contextlib.suppress(OSError):
+                self._wake[1].send(b"x")
         if self._thread is not None:
             self._thread.join(2.0)
             self._thread = None
+        if self._wake is not None:
+            for end in self._wake:
+                end.close()
+            self._wake = None
         if self._sock is not None:
             self._sock.close()
             self._sock = None
@@ -158,10 +170,15 @@ class ControlServer:
         assert self._sock is not None
         selector = selectors.DefaultSelector()
         selector.register(self._sock, selectors.EVENT_READ)
+        assert self._wake is not None
+        wake = self._wake[0]
+        selector.register(wake, selectors.EVENT_READ)
         clients: dict[socket.socket, tuple[float, bytes]] = {}  # -> (connected at, bytes)
         try:
             while not self._closed.is_set():
                 for key, _events in selector.select(timeout=0.1):
+                    if key.fileobj is wake:
+                        continue  # close(): the loop's condition ends it
                     if key.fileobj is self._sock:
                         self._accept(selector, clients)
                     else:
@@ -269,6 +286,20 @@ class StopReply:
         return bool(self.acknowledged)
 
 
+def _connect(client: socket.socket, path: Path, timeout: float) -> None:
+    """Connect, retrying while the listen queue is full (EAGAIN: a UNIX socket does not wait
+    for room, even with a timeout): a flood of other clients must not turn a stop away."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            client.connect(str(path))
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.005)
+
+
 def request_stop(path: Path | None = None, timeout: float = 0.5) -> StopReply:
     """Ask a running runtime to latch its safe stop.
 
@@ -284,7 +315,7 @@ def request_stop(path: Path | None = None, timeout: float = 0.5) -> StopReply:
         client = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         client.settimeout(timeout)
         try:
-            client.connect(str(candidate))
+            _connect(client, candidate, timeout)
             client.sendall(b"stop\n")
             answer = client.recv(_MAX_REQUEST)
         except (ConnectionRefusedError, FileNotFoundError):
