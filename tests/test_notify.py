@@ -258,3 +258,16 @@ class TestUnparsableEnvironment:
         else:
             monkeypatch.setenv("WATCHDOG_PID", pid)
         assert Notifier.from_env().watchdog_enabled is enabled
+
+
+class TestClose:
+    def test_close_releases_the_socket_and_is_safe_before_any_send(self, listener: Listener,
+                                                                   monkeypatch) -> None:
+        Notifier(listener.name, 300_000).close()  # nothing sent yet: nothing to close
+        before = len(os.listdir("/proc/self/fd"))
+        notifier = notifier_for(listener, monkeypatch)
+        notifier.ready("ready")
+        assert len(os.listdir("/proc/self/fd")) == before + 1
+        notifier.close()
+        notifier.close()
+        assert len(os.listdir("/proc/self/fd")) == before

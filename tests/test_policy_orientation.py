@@ -117,3 +117,22 @@ class TestFramesKeepTheirOrientation:
         col = 10 * (fx * np.arange(8) + (fx - 1) / 2)
         want = [(row[h], col[w], row[h])[c] for h, w, c in PICKS]
         assert policy.infer(frame).tolist() == want
+
+
+class TestLayoutPrecedence:
+    """Config over metadata over the shape's guess (DESIGN: "Config can override"), on a shape
+    that could be either layout."""
+
+    def test_config_then_metadata_then_guess(self, tmp_path: Path) -> None:
+        from jetbot_rt.config import PolicyConfig
+
+        ambiguous = element_probe(tmp_path / "p.onnx", "NCHW", 8, 3)  # [1, 3, 8, 3]
+        assert OnnxPolicy.load(ambiguous).spec.layout == "NCHW"  # as its metadata states
+        nhwc = OnnxPolicy.load(ambiguous, PolicyConfig(layout="NHWC")).spec
+        assert (nhwc.layout, nhwc.height, nhwc.width) == ("NHWC", 3, 8)
+        model = onnx.load(str(ambiguous))
+        del model.metadata_props[:]
+        onnx.save(model, str(tmp_path / "bare.onnx"))
+        assert OnnxPolicy.load(tmp_path / "bare.onnx").spec.layout == "NHWC"  # rl_games' guess
+        nchw = OnnxPolicy.load(tmp_path / "bare.onnx", PolicyConfig(layout="NCHW")).spec
+        assert (nchw.layout, nchw.height, nchw.width) == ("NCHW", 8, 3)
