@@ -104,3 +104,12 @@ def test_defaults_three_retries_and_the_emulator_at_0x60(tmp_path, monkeypatch) 
     I2CBus(chip, 1).writeto(0x60, bytes((MODE1, 0x20)))
     monkeypatch.setenv(EMULATOR_ENV, str(tmp_path / "chip.json"))
     assert open_smbus(1).address == 0x60
+
+
+def test_a_combined_transfer_returns_what_its_read_got(chip) -> None:
+    bus = I2CBus(chip, 1)
+    # two writes, then MODE1 read back, all in one transaction
+    got = bus.transfer(0x60, [bytes((MODE1, 0x31)), bytes((MODE1,))], read=1)
+    assert got == bytes((0x31,))
+    assert bus.transfer(0x60, [bytes((MODE1, 0x20))]) == b""
+    assert chip.registers[MODE1] == 0x20

@@ -243,3 +243,17 @@ def test_older_waveshare_revision_as_documented_matches_jetbots_writes(chip) -> 
     assert outputs(chip, JETBOT_FORWARD_IN1) == pytest.approx([0.5, 0.5], abs=STEP)
     assert outputs(chip, JETBOT_FORWARD_IN2) == [0.0, 0.0]
     assert chip.duties()[:4] == [0.0] * 4  # nothing on the newer revision's outputs
+
+
+@pytest.mark.parametrize("layout", ["waveshare", "motorhat"])
+def test_a_drive_whose_chip_was_put_to_sleep_faults_and_stays_off(chip, layout) -> None:
+    from jetbot_rt.hal.motors import BoardAsleep, stop_and_sleep
+
+    drive = WaveshareDrive(I2CBus(chip, 1), ADDR, 1600.0) if layout == "waveshare" \
+        else motorhat(chip)
+    drive.write(0.5, 0.5)
+    stop_and_sleep(I2CBus(chip, 1), ADDR)  # jetbot-rt stop from another process
+    assert chip.sleeping and chip.all_off()
+    with pytest.raises(BoardAsleep):
+        drive.write(0.5, 0.5)
+    assert chip.sleeping and chip.all_off()
