@@ -94,19 +94,28 @@ class Equivalent:
     mutated: tuple[str, ...]
     reason: str
     operator: str = ""
+    unless: str = ""
+    """With ``operator``: not when the mutated line contains this."""
 
     def matches(self, mutant: Mutant) -> bool:
         if mutant.module != self.module or mutant.original != self.original:
             return False
         if self.mutated:
             return mutant.mutated in self.mutated
-        return bool(self.operator) and self.operator in mutant.operator
+        return (bool(self.operator) and self.operator in mutant.operator
+                and not (self.unless and self.unless in mutant.mutated))
 
 
 _CLAMP = "return low if value < low else high if value > high else value"
 _PID = "pid = (_positive_int(pid_text) or -1) if pid_text else None"
 _DIM = "return value if isinstance(value, int) and value > 0 else None"
+_FULL = ("the full-on or full-off bit is set: the PCA9685 ignores the counts then (datasheet "
+         "7.3.3), so another count below 0x100 changes no output")
 EQUIVALENT = [
+    Equivalent("jetbot_rt/hal/motors.py", "return bytes((0, FULL_BIT, 0, 0))", (), _FULL,
+               operator="NumberReplacer", unless="-"),
+    Equivalent("jetbot_rt/hal/motors.py", "return bytes((0, 0, 0, FULL_BIT))", (), _FULL,
+               operator="NumberReplacer", unless="-"),
     Equivalent("jetbot_rt/actions.py", _CLAMP,
                (_CLAMP.replace("value < low", "value <= low"),
                 _CLAMP.replace("value > high", "value >= high")),
