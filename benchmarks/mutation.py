@@ -62,26 +62,30 @@ RESULTS = ROOT / "benchmarks" / "results"
 
 FAST_SAFETY = ["tests/test_safety_contracts.py", "tests/test_safety.py",
                "tests/test_loop_schedule.py", "tests/test_loop.py"]
+E2E_REAL = "tests/test_real_backend_e2e.py"
+OWNERSHIP_STOP = [f"tests/test_fault_ownership.py::{name}" for name in (
+    "test_stop_defeats_a_runtime_it_cannot_talk_to",
+    "test_stop_never_reports_success_while_a_runtime_drives",
+    "test_stop_names_a_process_it_cannot_defeat")]
 MODULES: dict[str, tuple[list[str], list[str]]] = {
     # module: (fast tests, run first with -x; slow tests, run only if the fast ones pass)
-    "jetbot_rt/safety.py": (FAST_SAFETY, ["tests/test_stop_event_order.py",
-                                          "tests/test_real_backend_e2e.py"]),
+    "jetbot_rt/safety.py": (FAST_SAFETY, ["tests/test_stop_event_order.py", E2E_REAL]),
     "jetbot_rt/loop.py": (["tests/test_loop_schedule.py", "tests/test_loop.py"],
-                          ["tests/test_stop_event_order.py", "tests/test_real_backend_e2e.py"]),
-    "jetbot_rt/actions.py": (["tests/test_actions.py", "tests/test_loop_schedule.py"],
-                             ["tests/test_real_backend_e2e.py"]),
+                          ["tests/test_stop_event_order.py", E2E_REAL]),
+    "jetbot_rt/actions.py": (["tests/test_actions.py", "tests/test_loop_schedule.py"], [E2E_REAL]),
     "jetbot_rt/policy.py": (["tests/test_policy.py", "tests/test_policy_orientation.py"],
-                            ["tests/test_fault_input.py", "tests/test_real_backend_e2e.py"]),
+                            ["tests/test_fault_input.py", E2E_REAL]),
     "jetbot_rt/hal/motors.py": (["tests/test_motors.py", "tests/test_i2c.py"],
-                                ["tests/test_stop.py", "tests/test_real_backend_e2e.py"]),
-    "jetbot_rt/hal/i2c.py": (["tests/test_i2c.py", "tests/test_motors.py"],
-                             ["tests/test_stop.py"]),
-    "jetbot_rt/stop.py": (["tests/test_stop.py"], ["tests/test_fault_config_read.py"]),
+                                ["tests/test_stop.py", E2E_REAL, *OWNERSHIP_STOP]),
+    "jetbot_rt/hal/i2c.py": (["tests/test_i2c.py", "tests/test_motors.py"], ["tests/test_stop.py"]),
+    "jetbot_rt/stop.py": (["tests/test_stop.py"],
+                          ["tests/test_fault_config_read.py", *OWNERSHIP_STOP, E2E_REAL]),
     # the other end-to-end systemd tests run with the default 0.1 s in-process watchdog, which
     # a loaded machine trips now and then: a false kill here
     "jetbot_rt/notify.py": (["tests/test_notify.py"],
                             ["tests/test_systemd_e2e.py::TestWatchdogPingsComeFromCompletedTicks"]),
 }
+
 
 @dataclass(frozen=True)
 class Equivalent:
@@ -112,6 +116,10 @@ _DIM = "return value if isinstance(value, int) and value > 0 else None"
 _FULL = ("the full-on or full-off bit is set: the PCA9685 ignores the counts then (datasheet "
          "7.3.3), so another count below 0x100 changes no output")
 EQUIVALENT = [
+    Equivalent("jetbot_rt/hal/motors.py", "SLEEP = bytes((MODE1, MODE1_SLEEP | MODE1_AI))",
+               ("SLEEP = bytes((MODE1, MODE1_SLEEP ^ MODE1_AI))",
+                "SLEEP = bytes((MODE1, MODE1_SLEEP + MODE1_AI))"),
+               "0x10 and 0x20 share no bit: |, ^ and + give the same byte"),
     Equivalent("jetbot_rt/hal/motors.py", "return bytes((0, FULL_BIT, 0, 0))", (), _FULL,
                operator="NumberReplacer", unless="-"),
     Equivalent("jetbot_rt/hal/motors.py", "return bytes((0, 0, 0, FULL_BIT))", (), _FULL,

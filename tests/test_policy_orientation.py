@@ -136,3 +136,27 @@ class TestLayoutPrecedence:
         assert OnnxPolicy.load(tmp_path / "bare.onnx").spec.layout == "NHWC"  # rl_games' guess
         nchw = OnnxPolicy.load(tmp_path / "bare.onnx", PolicyConfig(layout="NCHW")).spec
         assert (nchw.layout, nchw.height, nchw.width) == ("NCHW", 8, 3)
+
+
+class TestColourChannelsCounted:
+    @pytest.mark.parametrize("channels", [1, 2, 4])
+    def test_an_image_input_without_three_channels_is_refused(self, tmp_path: Path,
+                                                               channels: int) -> None:
+        from jetbot_rt.config import PolicyConfig
+        from jetbot_rt.errors import UsageError
+
+        graph = helper.make_graph(
+            [helper.make_node("ReduceMean", ["obs"], ["m"], axes=[1, 2], keepdims=0),
+             helper.make_node("Slice", ["m", "zero", "two", "one"], ["mu"])],
+            "channels", [helper.make_tensor_value_info("obs", TensorProto.FLOAT,
+                                                       [1, 8, 8, channels])],
+            [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, None])],
+            [numpy_helper.from_array(np.array([0], np.int64), "zero"),
+             numpy_helper.from_array(np.array([2], np.int64), "two"),
+             numpy_helper.from_array(np.array([1], np.int64), "one")],
+        )
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+        model.ir_version = 8
+        onnx.save(model, str(tmp_path / "m.onnx"))
+        with pytest.raises(UsageError, match="expected 3 colour channels in NHWC input"):
+            OnnxPolicy.load(tmp_path / "m.onnx", PolicyConfig(layout="NHWC"))
