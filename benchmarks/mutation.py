@@ -115,7 +115,11 @@ _PID = "pid = (_positive_int(pid_text) or -1) if pid_text else None"
 _DIM = "return value if isinstance(value, int) and value > 0 else None"
 _FULL = ("the full-on or full-off bit is set: the PCA9685 ignores the counts then (datasheet "
          "7.3.3), so another count below 0x100 changes no output")
+_RESHAPE = "mu = np.asarray(output, dtype=np.float64).reshape(-1)"
 EQUIVALENT = [
+    Equivalent("jetbot_rt/policy.py", _RESHAPE,
+               tuple(_RESHAPE.replace("(-1)", f"({v})") for v in ("~1", "- 2", "-2")),
+               "numpy takes any negative size as 'all the rest' (checked on numpy 2.4)"),
     Equivalent("jetbot_rt/hal/motors.py", "SLEEP = bytes((MODE1, MODE1_SLEEP | MODE1_AI))",
                ("SLEEP = bytes((MODE1, MODE1_SLEEP ^ MODE1_AI))",
                 "SLEEP = bytes((MODE1, MODE1_SLEEP + MODE1_AI))"),
