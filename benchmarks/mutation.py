@@ -117,6 +117,8 @@ _FULL = ("the full-on or full-off bit is set: the PCA9685 ignores the counts the
          "7.3.3), so another count below 0x100 changes no output")
 _RESHAPE = "mu = np.asarray(output, dtype=np.float64).reshape(-1)"
 EQUIVALENT = [
+    Equivalent("jetbot_rt/hal/motors.py", "if TYPE_CHECKING:", ("if not TYPE_CHECKING:",),
+               "the type-only import also works at run time (no import cycle)"),
     Equivalent("jetbot_rt/policy.py", _RESHAPE,
                tuple(_RESHAPE.replace("(-1)", f"({v})") for v in ("~1", "- 2", "-2")),
                "numpy takes any negative size as 'all the rest' (checked on numpy 2.4)"),
@@ -162,9 +164,10 @@ def equivalent_reason(mutant: Mutant) -> str:
             return rule.reason
     # ``*`` (keyword-only marker) -> ``/`` in a signature: cosmic-ray's Mul_Div also swaps the
     # star of ``def f(self, a, *, start=0)``; every caller passes those by keyword either way
-    if (mutant.operator.endswith("ReplaceBinaryOperator_Mul_Div")
-            and mutant.mutated == mutant.original.replace("*, ", "/, ", 1)
-            and "*, " in mutant.original and ": " in mutant.original):
+    if mutant.operator.endswith("ReplaceBinaryOperator_Mul_Div") and (
+            (mutant.original, mutant.mutated) == ("*,", "/,")
+            or (mutant.mutated == mutant.original.replace("*, ", "/, ", 1)
+                and "*, " in mutant.original and ": " in mutant.original)):
         return ("the keyword-only marker * made a positional-only marker /: the parameters "
                 "after it are still passed by keyword, as every caller does")
     return ""

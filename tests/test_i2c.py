@@ -113,3 +113,27 @@ def test_a_combined_transfer_returns_what_its_read_got(chip) -> None:
     assert got == bytes((0x31,))
     assert bus.transfer(0x60, [bytes((MODE1, 0x20))]) == b""
     assert chip.registers[MODE1] == 0x20
+
+
+def test_retries_are_counted_from_zero_and_open_defaults_to_three(tmp_path, monkeypatch) -> None:
+    chip = PCA9685Emulator(0x60)
+    bus = I2CBus(chip, 1)
+    assert bus.retried == 0
+    chip.fail_next = 2
+    bus.writeto(0x60, bytes((MODE1, 0x20)))
+    assert bus.retried == 2
+    monkeypatch.setenv(EMULATOR_ENV, str(tmp_path / "chip.json"))
+    shared = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+    shared.update(fail_next=3)
+    with I2CBus.open(1) as opened:
+        opened.writeto(0x60, bytes((MODE1, 0x20)))
+        assert opened.retried == 3
+
+
+def test_write_then_read_sends_the_whole_write(chip) -> None:
+    bus = I2CBus(chip, 1)
+    got = bytearray(1)
+    # MODE1 <- 0x31 (auto-increment on), then the pointer is at MODE2: read it
+    bus.writeto_then_readfrom(0x60, bytes((MODE1, 0x31)), got)
+    assert chip.registers[MODE1] == 0x31
+    assert got[0] == chip.registers[MODE1 + 1]

@@ -271,3 +271,12 @@ class TestClose:
         notifier.close()
         notifier.close()
         assert len(os.listdir("/proc/self/fd")) == before
+
+
+def test_a_closed_notifier_opens_a_new_socket_for_a_later_message(listener: Listener,
+                                                                  monkeypatch) -> None:
+    notifier = notifier_for(listener, monkeypatch)
+    notifier.ready("ready")
+    notifier.close()
+    notifier.stopping("stopping")
+    assert [m.get("STOPPING") for m in listener.messages()] == [None, "1"]

@@ -214,7 +214,9 @@ class TestActionCountWithASymbolicBatch:
         policy = OnnxPolicy.load(symbolic_batch_actions(tmp_path / "m.onnx", 2))
         assert policy.infer(np.zeros((32, 32, 3), np.uint8)).tolist() == [0.0, 0.0]
 
-    def test_one_action_from_an_unknown_width_is_a_fault_when_it_runs(self, tmp_path):
+    @pytest.mark.parametrize("values", [1, 3])
+    def test_a_wrong_count_from_an_unknown_width_is_a_fault_when_it_runs(self, tmp_path,
+                                                                         values):
         # mu = Tile(c, [batch, 1]) with c one value: the repeats come from the input's shape at
         # run time, so onnxruntime cannot tell the output's width before it runs
         graph = helper.make_graph(
@@ -225,7 +227,7 @@ class TestActionCountWithASymbolicBatch:
             "tiled",
             [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", 32, 32, 3])],
             [helper.make_tensor_value_info("mu", TensorProto.FLOAT, None)],
-            [numpy_helper.from_array(np.zeros((1, 1), np.float32), "c"),
+            [numpy_helper.from_array(np.zeros((1, values), np.float32), "c"),
              numpy_helper.from_array(np.array([0], np.int64), "zero"),
              numpy_helper.from_array(np.array([1], np.int64), "one")],
         )
@@ -233,5 +235,5 @@ class TestActionCountWithASymbolicBatch:
         model.ir_version = 8
         onnx.save(model, str(tmp_path / "m.onnx"))
         policy = OnnxPolicy.load(tmp_path / "m.onnx")
-        with pytest.raises(Fault, match="policy gave 1 action values, expected 2"):
+        with pytest.raises(Fault, match=f"policy gave {values} action values, expected 2"):
             policy.infer(np.zeros((32, 32, 3), np.uint8))
