@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import policy_models
 
 from jetbot_rt.actions import ActionPipeline
-from jetbot_rt.hal.null import NullCamera, NullDrive
-from jetbot_rt.loop import ControlLoop
+from jetbot_rt.hal.null import NullDrive, PartsRobot
+from jetbot_rt.loop import ControlLoop, Safety, Schedule
 from jetbot_rt.policy import OnnxPolicy
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
 from jetbot_rt.telemetry import Telemetry
@@ -49,8 +49,9 @@ def build_loop(policy, period: float, telemetry: Telemetry, watchdog_timeout: fl
     guarded = GuardedDrive(drive, latch)
     watchdog = Watchdog(latch, watchdog_timeout) if watchdog_timeout else None
     loop = ControlLoop(
-        camera=NullCamera(), policy=policy, actions=ActionPipeline(), drive=guarded,
-        latch=latch, watchdog=watchdog, telemetry=telemetry, period=period, max_frame_age=1.0,
+        robot=PartsRobot(drive=drive), policy=policy, actions=ActionPipeline(),
+        safety=Safety(latch, guarded, watchdog), schedule=Schedule(period, max_frame_age=1.0),
+        observers=[telemetry.observe] if telemetry.enabled else [],
     )
     return loop, latch, watchdog
 

@@ -6,10 +6,28 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from jetbot_rt.errors import Fault
 
+if TYPE_CHECKING:
+    from jetbot_rt.config import ActionsConfig
+
 DEFAULT_MAX_SPEED = 0.1
+
+
+class NonFinite(Fault, ValueError):
+    """A NaN or an infinity where a wheel command is due: a fault while driving (safe stop), a
+    ``ValueError`` to callers of the sim world's API."""
+
+
+def finite_pair(left: float, right: float, what: str = "duty ") -> tuple[float, float]:
+    """``(left, right)`` as floats; ``NonFinite`` naming ``what`` if either is NaN or infinite.
+    The one non-finite check: the action pipeline, the motor drivers and the sim world call it."""
+    left, right = float(left), float(right)
+    if not (math.isfinite(left) and math.isfinite(right)):
+        raise NonFinite(f"non-finite {what}[{left}, {right}]")
+    return left, right
 
 
 def _clamp(value: float, low: float, high: float) -> float:
@@ -24,13 +42,22 @@ class ActionPipeline:
     trim: tuple[float, float] = (1.0, 1.0)
     sign: tuple[int, int] = (1, 1)
 
+    @classmethod
+    def from_config(cls, actions: ActionsConfig, model_max_speed: float | None = None
+                    ) -> ActionPipeline:
+        """The pipeline of ``[actions]`` (flags included) and the model's ``max_speed``
+        metadata: the one builder, for the runtime and the training environment."""
+        return cls(
+            max_speed=resolve_max_speed(actions.max_speed, model_max_speed),
+            trim=(float(actions.trim[0]), float(actions.trim[1])),
+            sign=(int(actions.sign[0]), int(actions.sign[1])),
+        )
+
     def duties(self, mu: Sequence[float]) -> tuple[float, float]:
         """Map ``[left, right]`` policy outputs to duties; a non-finite value is a ``Fault``."""
         if len(mu) != 2:
             raise Fault(f"policy gave {len(mu)} action values, expected 2")
-        left, right = float(mu[0]), float(mu[1])
-        if not (math.isfinite(left) and math.isfinite(right)):
-            raise Fault(f"non-finite action mu=[{left}, {right}]")
+        left, right = finite_pair(mu[0], mu[1], "action mu=")
         return (
             _clamp(self.max_speed * _clamp(left, -1.0, 1.0) * self.trim[0] * self.sign[0], -1, 1),
             _clamp(self.max_speed * _clamp(right, -1.0, 1.0) * self.trim[1] * self.sign[1], -1, 1),

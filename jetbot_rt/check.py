@@ -12,7 +12,6 @@ import argparse
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from jetbot_rt import signals
@@ -137,13 +136,6 @@ def _short_of_frames(taken: list[Any], frames: int, expected_fps: float) -> str:
             f"(none for {quiet:.1f} s)")
 
 
-def _policy_path(args: argparse.Namespace, config: Config) -> Path:
-    from jetbot_rt.policy import bundled_policy_path
-
-    path = args.policy or config.policy.path
-    return Path(path) if path else bundled_policy_path()
-
-
 def describe_policy(description: dict[str, Any]) -> str:
     width, height = description["size"]
     clip = description["clip"]
@@ -190,9 +182,10 @@ def run(args: argparse.Namespace) -> int:
     described: dict[str, Any] = {}
 
     def load_policy() -> str:
-        from jetbot_rt.policy import OnnxPolicy
+        from jetbot_rt.policy import OnnxPolicy, resolve_policy_path
 
-        policy = OnnxPolicy.load(_policy_path(args, config), config.policy)
+        path = resolve_policy_path(args.policy or config.policy.path)
+        policy = OnnxPolicy.load(path, config.policy)
         described.update(policy.describe())
         return describe_policy(described)
 

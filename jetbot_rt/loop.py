@@ -1,4 +1,7 @@
-"""The fixed-rate control loop: read -> infer -> act -> write, on absolute monotonic deadlines.
+"""The fixed-rate control loop, ros2_control's cycle: read (the newest frame) -> update (policy,
+actions) -> write (the drive), on absolute monotonic deadlines; then the robot's time passes
+(``Robot.step``: the sim's world step, nothing on hardware), outside the tick's timing; then the
+tick's result goes to its observers (telemetry, the recorder, the service notifier).
 
 A tick that ends past its successor's deadline skips the missed ticks and counts them: the
 loop never bursts to catch up, so a slow moment never turns into a rush of stale commands.
@@ -15,10 +18,9 @@ import numpy as np
 
 from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.errors import Fault
-from jetbot_rt.hal.base import Camera
+from jetbot_rt.hal.base import Frame, Robot
 from jetbot_rt.histogram import Histogram
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-from jetbot_rt.telemetry import Telemetry
 
 
 class Policy(Protocol):
@@ -27,7 +29,8 @@ class Policy(Protocol):
 
 @dataclass(frozen=True)
 class TickResult:
-    """What one completed tick saw and did, handed to every tick observer.
+    """What one completed tick saw and did, handed to every tick observer; it formats its own
+    telemetry record (``record``), which the observers call off the control thread.
 
     ``image`` is the frame exactly as the policy received it (HxWx3 uint8 RGB, before the
     policy's own colour, dtype and layout conversion). Times are ``time.monotonic()`` seconds;
@@ -49,6 +52,11 @@ class TickResult:
     overruns: int
     extra: dict[str, Any]
     """The backend's per-tick fields (the sim's ``pose`` and ``sim_time``)."""
+
+    @property
+    def t_end(self) -> float:
+        """When the timed part of the tick (read, update, write) ended."""
+        return self.t_start + self.tick_ms / 1e3
 
     def record(self, t0: float) -> dict[str, Any]:
         """The telemetry record of this tick (``t`` relative to ``t0``)."""
@@ -98,41 +106,59 @@ class LoopStats:
         return self.ticks / self.elapsed if self.elapsed > 0 else 0.0
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """When ticks run and which frames they accept."""
+
+    period: float
+    max_frame_age: float
+    clock: Callable[[], float] = time.monotonic
+
+
+@dataclass(frozen=True)
+class Safety:
+    """The safe-stop chain a tick answers to: the latch, the drive it guards, the watchdog."""
+
+    latch: SafeStopLatch
+    drive: GuardedDrive
+    watchdog: Watchdog | None = None
+
+
+@dataclass(frozen=True)
+class _Written:
+    """What the read -> update -> write part of a tick did, with its clock readings."""
+
+    frame: Frame
+    frame_age: float
+    mu: list[float]
+    cmd: tuple[float, float]
+    t_infer: float
+    t_act: float
+    t_written: float
+
+
 class ControlLoop:
     def __init__(
         self,
         *,
-        camera: Camera,
+        robot: Robot,
         policy: Policy,
         actions: ActionPipeline,
-        drive: GuardedDrive,
-        latch: SafeStopLatch,
-        watchdog: Watchdog | None,
-        telemetry: Telemetry,
-        period: float,
-        max_frame_age: float,
-        advance: Callable[[float], None] | None = None,
-        extra_telemetry: Callable[[], dict[str, Any]] | None = None,
-        on_tick_done: Callable[[float], None] | None = None,
+        safety: Safety,
+        schedule: Schedule,
         observers: Sequence[TickObserver] = (),
-        clock: Callable[[], float] = time.monotonic,
+        stats: LoopStats | None = None,
     ) -> None:
-        self.camera = camera
+        self.robot = robot
         self.policy = policy
         self.actions = actions
-        self.drive = drive
-        self.latch = latch
-        self.watchdog = watchdog
-        self.telemetry = telemetry
-        self.period = period
-        self.max_frame_age = max_frame_age
-        self.advance = advance
-        self.extra_telemetry = extra_telemetry
-        self.on_tick_done = on_tick_done
+        self.safety = safety
+        self.latch = safety.latch
+        self.schedule = schedule
+        self.period = schedule.period
+        self.clock = schedule.clock
         self.observers = list(observers)
-        self.clock = clock
-        self.stats = LoopStats()
-        self.last_mu: list[float] = [0.0, 0.0]
+        self.stats = stats if stats is not None else LoopStats()
 
     def run(self, duration: float | None = None) -> None:
         """Tick until the latch trips (fault, signal, stop command) or ``duration`` ends."""
@@ -169,56 +195,60 @@ class ControlLoop:
             stats.t_end = self.clock()
 
     def _tick(self, deadline: float, t_start: float) -> None:
-        stats = self.stats
-        frame = self.camera.read()
-        if frame is None:
-            raise Fault("camera delivered no frame")
-        frame_age = t_start - frame.t_capture
-        if frame_age > self.max_frame_age:
-            raise Fault(
-                f"stale frame: {frame_age * 1e3:.0f} ms old (max_frame_age "
-                f"{self.max_frame_age * 1e3:.0f} ms)"
-            )
-        t_infer = self.clock()
-        mu = self.policy.infer(frame.image)
-        t_act = self.clock()
-        left, right = self.actions.duties(mu)
-        self.last_mu = [float(mu[0]), float(mu[1])]
-        if not self.drive.write(left, right):
+        """One cycle: read, update, write (timed: ``tick_ms``); the robot's time step (timed
+        apart: ``advance_ms``); the result to the observers."""
+        written = self._read_update_write(t_start)
+        if written is None:
             return  # the latch tripped meanwhile; the loop ends at its next check
-        t_written = self.clock()
-        if self.advance is not None:
-            self.advance(self.period)
-        t_end = self.clock()
-
+        stats = self.stats
         stats.ticks += 1
-        tick_ms = (t_end - t_start) * 1e3
-        infer_ms = (t_act - t_infer) * 1e3
+        tick_ms = (written.t_written - t_start) * 1e3
+        infer_ms = (written.t_act - written.t_infer) * 1e3
         stats.tick_ms.add(tick_ms)
         stats.infer_ms.add(infer_ms)
-        if self.watchdog is not None:
-            self.watchdog.kick()
-        if self.on_tick_done is not None:
-            self.on_tick_done(t_end)
-        if not (self.telemetry.enabled or self.observers):
+        if self.safety.watchdog is not None:
+            self.safety.watchdog.kick()
+        advance_ms = None
+        if self.robot.simulated:
+            self.robot.step(self.period)
+            advance_ms = (self.clock() - written.t_written) * 1e3
+        if not self.observers:
             return
         result = TickResult(
             tick=stats.ticks,
             t_start=t_start,
             deadline=deadline,
-            image=frame.image,
-            frame_index=frame.index,
-            frame_age_ms=frame_age * 1e3,
-            mu=self.last_mu,
-            cmd=(left, right),
+            image=written.frame.image,
+            frame_index=written.frame.index,
+            frame_age_ms=written.frame_age * 1e3,
+            mu=written.mu,
+            cmd=written.cmd,
             infer_ms=infer_ms,
             tick_ms=tick_ms,
-            write_ms=(t_written - t_act) * 1e3,
-            advance_ms=(t_end - t_written) * 1e3 if self.advance is not None else None,
+            write_ms=(written.t_written - written.t_act) * 1e3,
+            advance_ms=advance_ms,
             overruns=stats.overruns,
-            extra=self.extra_telemetry() if self.extra_telemetry is not None else {},
+            extra=self.robot.state(),
         )
         for observer in self.observers:
             observer(result)
-        if self.telemetry.enabled:
-            self.telemetry.record(result.record(self.telemetry.t0))
+
+    def _read_update_write(self, t_start: float) -> _Written | None:
+        frame = self.robot.camera.read()
+        if frame is None:
+            raise Fault("camera delivered no frame")
+        frame_age = t_start - frame.t_capture
+        max_age = self.schedule.max_frame_age
+        if frame_age > max_age:
+            raise Fault(
+                f"stale frame: {frame_age * 1e3:.0f} ms old (max_frame_age "
+                f"{max_age * 1e3:.0f} ms)"
+            )
+        t_infer = self.clock()
+        mu = self.policy.infer(frame.image)
+        t_act = self.clock()
+        cmd = self.actions.duties(mu)
+        if not self.safety.drive.write(*cmd):
+            return None
+        return _Written(frame, frame_age, [float(mu[0]), float(mu[1])], cmd, t_infer, t_act,
+                        self.clock())

@@ -85,6 +85,11 @@ class Notifier:
         self._ready = True
         self._send(["READY=1", _status_line(status)])
 
+    @property
+    def active(self) -> bool:
+        """Whether there is a service manager to tell anything (``NOTIFY_SOCKET``)."""
+        return self._address is not None
+
     def tick(self, now: float, status: Callable[[], str]) -> None:
         """After each completed tick, ``now`` from ``time.monotonic()``. Sends WATCHDOG=1 when
         due and a STATUS= line at most once per second; nothing before ``ready`` or after

@@ -70,6 +70,17 @@ def bundled_policy_path() -> Path:
     return Path(__file__).resolve().parent / "policies" / "forward.onnx"
 
 
+def resolve_policy_path(given: str | Path | None) -> Path:
+    """The policy a command uses: ``given`` (a flag or ``[policy] path``), else the bundled
+    one; ``UsageError`` when none is given and this installation has no bundled policy."""
+    if given:
+        return Path(given)
+    bundled = bundled_policy_path()
+    if not bundled.is_file():
+        raise UsageError("no bundled policy in this installation; pass --policy FILE.onnx")
+    return bundled
+
+
 @dataclass(frozen=True)
 class InputSpec:
     """How a frame must look when it reaches the model."""

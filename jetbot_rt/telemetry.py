@@ -35,9 +35,12 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from jetbot_rt.errors import UsageError
+
+if TYPE_CHECKING:
+    from jetbot_rt.loop import TickResult
 
 QUEUE_RECORDS = 4096
 """Records held in memory for the writer (over two minutes at 30 Hz)."""
@@ -92,7 +95,7 @@ class Telemetry:
         self.error: str | None = None
         self._dropped = 0  # by callers: queue full or writer failed
         self._failed = 0  # by the writer
-        self._queue: collections.deque[dict[str, Any] | None] = collections.deque()
+        self._queue: collections.deque[dict[str, Any] | TickResult | None] = collections.deque()
         self._limit = queue_records
         self._wake = threading.Event()
         self._closing = False
@@ -114,7 +117,7 @@ class Telemetry:
         """Records dropped: queue full, write failed, or still queued when ``close`` gave up."""
         return self._dropped + self._failed
 
-    def record(self, record: dict[str, Any]) -> None:
+    def record(self, record: dict[str, Any] | TickResult) -> None:
         if not self.enabled:
             return
         if len(self._queue) >= self._limit or self.error is not None:
@@ -122,6 +125,10 @@ class Telemetry:
             return
         self._queue.append(record)
         self._wake.set()
+
+    def observe(self, result: TickResult) -> None:
+        """A tick observer: the tick's record, formatted by the writer thread."""
+        self.record(result)
 
     def event(self, name: str, **fields: Any) -> dict[str, Any]:
         record = {"t": round(time.monotonic() - self.t0, 6), "event": name, **fields}
@@ -175,8 +182,10 @@ class Telemetry:
                     self._failed += 1
                     self._report(str(getattr(exc, "strerror", None) or exc))
 
-    def _write_one(self, record: dict[str, Any]) -> None:
+    def _write_one(self, record: dict[str, Any] | TickResult) -> None:
         assert self._fd is not None
+        if not isinstance(record, dict):
+            record = record.record(self.t0)
         if self._regular and os.fstat(self._fd).st_nlink == 0:
             raise FileNotFoundError("file removed while running")
         data = (dumps(record) + "\n").encode("utf-8", "backslashreplace")

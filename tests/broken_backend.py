@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from jetbot_rt.hal.base import Backend
-from jetbot_rt.hal.null import NullCamera, NullDrive
+from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
 
 DRIVES: list[NullDrive] = []
 
@@ -17,5 +16,5 @@ def build_backend(config, options):
     drive = NullDrive()
     drive.last = (0.5, 0.5)  # as if a previous owner left the board driving
     DRIVES.append(drive)
-    return Backend(camera=BrokenCamera(), drive=drive)
+    return PartsRobot(camera=BrokenCamera(), drive=drive)
 

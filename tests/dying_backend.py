@@ -4,8 +4,7 @@ backend's own thread dying. In-process, because only a backend can do these thin
 
 from __future__ import annotations
 
-from jetbot_rt.hal.base import Backend
-from jetbot_rt.hal.null import NullCamera, NullDrive
+from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
 
 DRIVES: list[NullDrive] = []
 BEHAVIOUR = "loop-thread-exits"
@@ -34,14 +33,14 @@ def _loop_thread_exits(config, options):
     """The loop thread ends by SystemExit from inside a tick: no exception handler sees it."""
     drive = NullDrive()
     DRIVES.append(drive)
-    return Backend(camera=_FramesThen(12, _exit_loop_thread), drive=drive)
+    return PartsRobot(camera=_FramesThen(12, _exit_loop_thread), drive=drive)
 
 
 def _first_tick_fails(config, options):
     """A frame for the warm-up, then none: the loop faults on its first tick (zero ticks)."""
     drive = NullDrive()
     DRIVES.append(drive)
-    return Backend(camera=_FramesThen(1, lambda: None), drive=drive)
+    return PartsRobot(camera=_FramesThen(1, lambda: None), drive=drive)
 
 
 def _helper_thread_dies(config, options):
@@ -64,7 +63,7 @@ def _helper_thread_dies(config, options):
         threading.Thread(target=reader, name="camera-reader", daemon=True).start()
 
     camera.start = start  # type: ignore[method-assign]
-    return Backend(camera=camera, drive=drive)
+    return PartsRobot(camera=camera, drive=drive)
 
 
 BEHAVIOURS = {"loop-thread-exits": _loop_thread_exits, "first-tick-fails": _first_tick_fails,

@@ -4,8 +4,8 @@ import time
 import numpy as np
 
 from jetbot_rt.actions import ActionPipeline
-from jetbot_rt.hal.null import NullCamera, NullDrive
-from jetbot_rt.loop import ControlLoop
+from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
+from jetbot_rt.loop import ControlLoop, Safety, Schedule
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
 from jetbot_rt.telemetry import Telemetry
 
@@ -30,9 +30,9 @@ def make_loop(policy, period=0.02, camera=None, timeout=None, telemetry=None):
     guarded = GuardedDrive(drive, latch)
     watchdog = Watchdog(latch, timeout) if timeout else None
     loop = ControlLoop(
-        camera=camera or NullCamera(), policy=policy, actions=ActionPipeline(),
-        drive=guarded, latch=latch, watchdog=watchdog,
-        telemetry=telemetry or Telemetry(None), period=period, max_frame_age=0.1,
+        robot=PartsRobot(camera or NullCamera(), drive), policy=policy, actions=ActionPipeline(),
+        safety=Safety(latch, guarded, watchdog), schedule=Schedule(period, max_frame_age=0.1),
+        observers=[telemetry.observe] if telemetry is not None else [],
     )
     return loop, latch, drive, watchdog
 

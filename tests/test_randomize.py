@@ -112,7 +112,7 @@ def test_the_sim_backend_draws_once_from_its_seed_when_enabled():
             backend.camera.start()
             return backend.camera.read().image.copy()
         finally:
-            backend.close()
+            backend.disconnect()
 
     plain = first_frame({})
     drawn = first_frame({"randomize": {"enabled": True}, "sim": {"seed": 11}})

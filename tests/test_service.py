@@ -176,7 +176,11 @@ def test_protect_home_is_relaxed_only_for_an_installation_in_a_home():
 
 def test_repository_unit_is_the_packaged_template():
     packaged = service.unit_template()
-    assert (REPO / "systemd" / "jetbot-rt.service").read_text() == packaged
+    unit = REPO / "systemd" / "jetbot-rt.service"
+    # stored once: systemd/ links to the packaged template (the wheel carries jetbot_rt/data/)
+    assert unit.is_symlink()
+    assert unit.resolve() == (REPO / "jetbot_rt" / "data" / "jetbot-rt.service").resolve()
+    assert unit.read_text() == packaged
     for placeholder in ("@EXECUTABLE@", "@USER@", "@CONFIG@", "@PROTECT_HOME@"):
         assert placeholder in packaged
 

@@ -13,15 +13,16 @@ TICK = 1 / 30
 
 
 def sim_backend(config: Config | None = None, options: BackendOptions | None = None):
-    return make_backend("sim", config or Config(), options or BackendOptions())
+    robot = make_backend("sim", config or Config(), options or BackendOptions())
+    robot.connect()
+    return robot
 
 
 @pytest.fixture
 def backend():
     b = sim_backend()
     yield b
-    b.camera.stop()
-    b.close()
+    b.disconnect()
 
 
 def advance(backend, seconds: float) -> list:
@@ -33,8 +34,8 @@ def advance_timed(backend, seconds: float) -> list:
     """Advance tick by tick; (frame read after the tick, simulated time) per tick."""
     ticks = []
     for _ in range(round(seconds / TICK)):
-        backend.advance(TICK)
-        ticks.append((backend.camera.read(), backend.telemetry()["sim_time"]))
+        backend.step(TICK)
+        ticks.append((backend.camera.read(), backend.state()["sim_time"]))
     return ticks
 
 
@@ -44,7 +45,7 @@ def test_camera_renders_at_start_and_on_advance_only(backend):
     first = backend.camera.read()
     assert first.image.shape == (224, 224, 3) and first.image.dtype == np.uint8
     assert backend.camera.read() is first  # reading does not render
-    backend.advance(TICK)
+    backend.step(TICK)
     second = backend.camera.read()
     assert second.index == first.index + 1
     assert second.t_capture >= first.t_capture
@@ -56,19 +57,19 @@ def test_drive_moves_the_robot_and_stop_brakes_it(backend):
     backend.camera.start()
     backend.drive.write(0.1, 0.1)
     advance(backend, 2.0)
-    x = backend.telemetry()["pose"][0]
+    x = backend.state()["pose"][0]
     assert 0.08 < x + 0.6 < 0.14  # 0.06 m/s
     backend.drive.stop()
     advance(backend, 0.5)  # the motor lag and the contact settle
-    settled = backend.telemetry()["pose"][0]
+    settled = backend.state()["pose"][0]
     advance(backend, 1.0)
-    assert backend.telemetry()["pose"][0] == pytest.approx(settled, abs=1e-3)
+    assert backend.state()["pose"][0] == pytest.approx(settled, abs=1e-3)
 
 
 def test_telemetry_reports_pose_and_sim_time(backend):
     backend.camera.start()
     advance(backend, 1.0)
-    extra = backend.telemetry()
+    extra = backend.state()
     assert set(extra) == {"pose", "sim_time"}
     assert extra["sim_time"] == pytest.approx(1.0)
     assert extra["pose"] == pytest.approx([-0.6, 0.0, 0.0], abs=1e-3)
@@ -88,7 +89,7 @@ def test_camera_stall_keeps_returning_the_last_frame():
         backend.drive.write(0.3, 0.3)  # the view changes while the camera is stalled
         frames = advance(backend, 1.0)
     finally:
-        backend.close()
+        backend.disconnect()
     indices = [f.index for f in frames]
     assert indices[:15] == list(range(2, 17))  # one new frame per tick up to t = 0.5 s
     assert all(f is frames[14] for f in frames[15:])  # then the same frame: it goes stale
@@ -102,7 +103,7 @@ def test_blackout_renders_black_frames_in_its_window():
         backend.camera.start()
         ticks = advance_timed(backend, 0.6)
     finally:
-        backend.close()
+        backend.disconnect()
     black = [sim_time for frame, sim_time in ticks if not frame.image.any()]
     assert black == [t for _, t in ticks if 0.2 <= t <= 0.4]
     assert len(black) == 7  # 0.2, 0.233, ..., 0.4
@@ -115,7 +116,7 @@ def test_frame_size_option_sets_the_render_size():
         backend.camera.start()
         assert backend.camera.read().image.shape == (120, 160, 3)
     finally:
-        backend.close()
+        backend.disconnect()
 
 
 def test_frames_show_the_red_block_straight_ahead(backend):

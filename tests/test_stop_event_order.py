@@ -86,8 +86,7 @@ def stop_request_after_ticks(runtime: Any) -> None:
     """``jetbot-rt stop`` from another shell, once the robot drives."""
     done = threading.Event()
     while not done.wait(0.02):
-        loop = runtime.loop
-        if loop is not None and loop.stats.ticks >= 5:
+        if runtime.stats.ticks >= 5:
             break
         if runtime.latch.tripped:
             return

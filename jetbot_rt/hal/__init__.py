@@ -1,6 +1,7 @@
-"""Hardware abstraction: ``Camera`` and ``Drive`` interfaces and the backend factory."""
+"""Hardware abstraction: ``Camera`` and ``Drive`` interfaces, the ``Robot`` that holds them, and
+the backend factory."""
 
-from jetbot_rt.hal.base import Backend, Camera, Drive, Frame
+from jetbot_rt.hal.base import Camera, Drive, Frame, Robot
 from jetbot_rt.hal.registry import BackendOptions, make_backend
 
-__all__ = ["Backend", "BackendOptions", "Camera", "Drive", "Frame", "make_backend"]
+__all__ = ["BackendOptions", "Camera", "Drive", "Frame", "Robot", "make_backend"]

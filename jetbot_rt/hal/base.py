@@ -1,10 +1,9 @@
-"""The two device interfaces every backend implements, and the bundle the loop drives."""
+"""The two device interfaces every backend implements, and the ``Robot`` that holds them."""
 
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -58,22 +57,77 @@ class Drive(abc.ABC):
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the device. Called after the final stop."""
 
+    def stats(self) -> dict[str, float]:
+        """Counts of faults the device rode through by itself (``i2c_retried``)."""
+        return {}
 
-@dataclass
-class Backend:
-    """What ``make_backend`` returns: a camera, a drive, and an optional per-tick hook.
 
-    ``advance(dt)`` runs after the drive write of each tick: the sim steps its world by one
-    control period and renders the next frame; real hardware has no hook.
+class Robot(abc.ABC):
+    """A camera and a drive, and the robot's clock, with a lifecycle: ``connect()`` opens the
+    devices (the motor board set up with every output off; the camera stays idle until its
+    ``start()``, which the runtime's warm-up calls so that a stop can cancel it), ``step(dt)``
+    lets the robot's time pass (simulated time; nothing on hardware, where time passes by
+    itself), ``state()`` and ``stats()`` say what it sees and counts, ``disconnect()`` releases
+    it. As a context manager: connected inside, motors stopped and disconnected after.
+
+    A subclass builds its camera in ``__init__`` (nothing opened) and opens its drive in
+    ``open_drive``.
     """
 
-    camera: Camera
-    drive: Drive
-    advance: Callable[[float], None] | None = None
-    close: Callable[[], None] = field(default=lambda: None)
-    telemetry: Callable[[], dict[str, object]] | None = None
-    """Extra per-tick telemetry fields (the sim adds the robot's ``pose``)."""
-    counters: Callable[[], dict[str, float]] | None = None
-    """Added to the run summary and the ``end`` event: counts of faults the backend rode
-    through by itself (the real backend's ``i2c_retried``), what the simulated robot did (the
-    sim's ``travelled_m``, ``goal_distance_m``)."""
+    simulated = False
+    """Whether ``step`` advances a simulated clock (the loop then times it as ``advance_ms``)."""
+
+    def __init__(self, camera: Camera) -> None:
+        self.camera = camera
+        self._drive: Drive | None = None
+
+    @property
+    def connected(self) -> bool:
+        return self._drive is not None
+
+    @property
+    def drive(self) -> Drive:
+        if self._drive is None:
+            raise RuntimeError("robot not connected: call connect() first")
+        return self._drive
+
+    def connect(self) -> None:
+        """Open the devices. Raises ``UsageError`` when one cannot be reached (no motor has
+        moved)."""
+        if self._drive is None:
+            self._drive = self.open_drive()
+
+    @abc.abstractmethod
+    def open_drive(self) -> Drive:
+        """Open and set up the drive, every output off."""
+
+    def step(self, dt: float) -> None:  # noqa: B027 - a no-op on hardware
+        """Let ``dt`` seconds of the robot's time pass. Called once per control period, after
+        the tick's write and outside its timing."""
+
+    def state(self) -> dict[str, object]:
+        """Fields every tick record carries (the sim's ``pose`` and ``sim_time``, the real
+        board's ``i2c_retried``)."""
+        return {}
+
+    def stats(self) -> dict[str, float]:
+        """For the run's summary and ``end`` event: counts of faults the robot rode through by
+        itself (the real board's ``i2c_retried``), what the simulated robot did (the sim's
+        ``travelled_m``, ``goal_distance_m``)."""
+        return {}
+
+    def disconnect(self) -> None:
+        """Stop the camera and release what the robot holds. The drive stays usable for a last
+        zero write (the bus closes with the process). Idempotent."""
+        self.camera.stop()
+
+    def __enter__(self) -> Robot:
+        self.connect()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        try:
+            if self._drive is not None:
+                self._drive.stop()
+        finally:
+            self.disconnect()

@@ -20,12 +20,12 @@ from elsewhere, or a reset) is a ``Fault``, so that runtime ends in its safe sto
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 import types
 from typing import TYPE_CHECKING, Any
 
+from jetbot_rt.actions import finite_pair
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.hal.base import Drive
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
@@ -87,8 +87,7 @@ def prescale_for(frequency: float) -> int:
 
 
 def _checked(left: float, right: float) -> tuple[float, float]:
-    if not (math.isfinite(left) and math.isfinite(right)):
-        raise Fault(f"non-finite duty [{left}, {right}]")
+    left, right = finite_pair(left, right)
     return max(-1.0, min(1.0, left)), max(-1.0, min(1.0, right))
 
 
@@ -100,6 +99,11 @@ def channel_registers(duty: float) -> bytes:
     if count >= 4096:
         return bytes((0, FULL_BIT, 0, 0))
     return bytes((0, 0, count & 0xFF, count >> 8))
+
+
+def channel_write(channel: int, duty: float) -> bytes:
+    """One I2C write that sets output ``channel`` to ``duty`` (``channel_registers``)."""
+    return bytes((LED0_ON_L + 4 * channel,)) + channel_registers(duty)
 
 
 class WaveshareDrive(Drive):
@@ -138,6 +142,9 @@ class WaveshareDrive(Drive):
 
     def close(self) -> None:
         self.bus.deinit()
+
+    def stats(self) -> dict[str, float]:
+        return {"i2c_retried": self.bus.retried}
 
 
 # The MotorHAT's TB6612 PWM (enable) input for each of MotorKit's motors.
@@ -190,7 +197,7 @@ class MotorHatDrive(Drive):
         if self._enables_off and any(duties):
             # The hardware stop also turned off the PWM (enable) inputs MotorKit set once.
             for number in self._motor_numbers:
-                self.kit._pca.channels[MOTORHAT_PWM_CHANNEL[number]].duty_cycle = 0xFFFF
+                self.bus.writeto(self.address, channel_write(MOTORHAT_PWM_CHANNEL[number], 1.0))
             self._enables_off = False
         for motor, duty in zip(self._motors, duties):
             motor.throttle = duty if duty != 0 else None
@@ -201,6 +208,9 @@ class MotorHatDrive(Drive):
 
     def close(self) -> None:
         self.bus.deinit()
+
+    def stats(self) -> dict[str, float]:
+        return {"i2c_retried": self.bus.retried}
 
 
 def open_drive(motors: MotorsConfig) -> Drive:

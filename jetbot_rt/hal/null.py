@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE, Camera, Drive, Frame
+from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE, Camera, Drive, Frame, Robot
 
 
 class NullCamera(Camera):
@@ -39,4 +39,16 @@ class NullDrive(Drive):
     def stop(self) -> None:
         self.last = (0.0, 0.0)
         self.writes += 1
+
+
+class PartsRobot(Robot):
+    """A robot made of given parts (a null camera and drive unless told): for the loop's
+    benchmarks and tests, which bring their own cameras and drives."""
+
+    def __init__(self, camera: Camera | None = None, drive: Drive | None = None) -> None:
+        super().__init__(camera or NullCamera())
+        self._parts_drive = drive or NullDrive()
+
+    def open_drive(self) -> Drive:
+        return self._parts_drive
 

@@ -5,27 +5,34 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from jetbot_rt.hal.base import Backend
+from jetbot_rt.hal.base import Drive, Robot
 from jetbot_rt.hal.gst_camera import GstCamera
 from jetbot_rt.hal.motors import open_drive
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import Config
+    from jetbot_rt.config import Config, MotorsConfig
     from jetbot_rt.hal.registry import BackendOptions
 
 
-def build_backend(config: Config, options: BackendOptions) -> Backend:
-    """Open the motor board (all outputs off) and prepare the camera (started by the runtime).
+class RealRobot(Robot):
+    """``connect`` opens the motor board (all outputs off); the camera is started by the
+    runtime. ``disconnect`` stops the camera only: the bus stays open so that the runtime's
+    final zero write, which comes after it, still reaches the board; the process exit closes
+    it."""
 
-    ``close`` stops the camera only: the bus stays open so that the runtime's final zero write,
-    which comes after it, still reaches the board; the process exit closes it.
-    """
-    camera = GstCamera(config.camera, options.frame_size)
-    drive = open_drive(config.motors)
-    bus = drive.bus  # type: ignore[attr-defined]  # both layouts keep their I2CBus here
+    def __init__(self, camera: GstCamera, motors: MotorsConfig) -> None:
+        super().__init__(camera)
+        self._motors = motors
 
-    def counters() -> dict[str, int]:
-        return {"i2c_retried": bus.retried}
+    def open_drive(self) -> Drive:
+        return open_drive(self._motors)
 
-    return Backend(camera=camera, drive=drive, close=camera.stop, telemetry=counters,
-                   counters=counters)
+    def state(self) -> dict[str, object]:
+        return dict(self.stats())
+
+    def stats(self) -> dict[str, float]:
+        return self.drive.stats() if self.connected else {}
+
+
+def build_backend(config: Config, options: BackendOptions) -> Robot:
+    return RealRobot(GstCamera(config.camera, options.frame_size), config.motors)

@@ -12,7 +12,7 @@ from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
 
 if TYPE_CHECKING:
     from jetbot_rt.config import Config
-    from jetbot_rt.hal.base import Backend
+    from jetbot_rt.hal.base import Robot
 
 # name -> module that defines ``build_backend(config, options)``
 BACKEND_MODULES: dict[str, str] = {
@@ -30,7 +30,8 @@ class BackendOptions:
         self.gui = gui
 
 
-def make_backend(name: str, config: Config, options: BackendOptions | None = None) -> Backend:
+def make_backend(name: str, config: Config, options: BackendOptions | None = None) -> Robot:
+    """The backend's ``Robot``, not yet connected."""
     if name not in BACKEND_MODULES:
         known = ", ".join(sorted(BACKEND_MODULES))
         raise UsageError(f"unknown backend {name!r} (known: {known})")

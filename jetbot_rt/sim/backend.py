@@ -1,7 +1,8 @@
 """The ``sim`` backend: a ``Camera`` and a ``Drive`` over one ``JetbotWorld``.
 
-The runtime calls ``Backend.advance(dt)`` once per tick, after the drive write: the world
-steps one control period and the camera renders the frame the next tick will read. The
+The loop calls ``SimRobot.step(dt)`` once per tick, after the drive write and outside the
+tick's timing: the world steps one control period and the camera renders the frame the next
+tick will read. The
 camera's fault injection (``[sim] camera_stall_after``, ``[sim] blackout``) runs on simulated
 time, so a run with faults replays identically.
 """
@@ -14,8 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from jetbot_rt.errors import Fault
-from jetbot_rt.hal.base import Backend, Camera, Drive, Frame
+from jetbot_rt.hal.base import Camera, Drive, Frame, Robot
 from jetbot_rt.sim.randomize import sample
 from jetbot_rt.sim.world import JetbotWorld
 
@@ -68,44 +68,55 @@ class SimDrive(Drive):
         self._world = world
 
     def write(self, left: float, right: float) -> None:
-        if not (math.isfinite(left) and math.isfinite(right)):
-            raise Fault(f"sim drive: non-finite duty ({left}, {right})")
-        self._world.set_duty(left, right)
+        self._world.set_duty(left, right)  # a non-finite duty raises NonFinite, a Fault
 
     def stop(self) -> None:
         self._world.set_duty(0.0, 0.0)
 
 
-def build_backend(config: Config, options: BackendOptions) -> Backend:
-    """The world in its seed scene, rendering at the policy's frame size (224x224 default).
+class SimRobot(Robot):
+    """The robot in a ``JetbotWorld``: ``step(dt)`` steps the world one control period and
+    renders the frame the next tick will read."""
+
+    simulated = True
+
+    def __init__(self, world: JetbotWorld, sim: SimConfig) -> None:
+        self._sim_camera = SimCamera(world, sim)
+        super().__init__(self._sim_camera)
+        self._world = world
+        # What the robot did, kept up to date here: the summary is built after the world closed.
+        self._travelled_m = 0.0
+        self._goal_distance_m = world.distance_to_block()
+
+    def open_drive(self) -> Drive:
+        return SimDrive(self._world)
+
+    def step(self, dt: float) -> None:
+        world = self._world
+        x0, y0, _ = world.robot_pose()
+        world.step(dt)
+        x1, y1, _ = world.robot_pose()
+        self._travelled_m += math.hypot(x1 - x0, y1 - y0)
+        self._goal_distance_m = world.distance_to_block()
+        self._sim_camera.capture()
+
+    def state(self) -> dict[str, object]:
+        return {"pose": list(self._world.robot_pose()), "sim_time": self._world.sim_time}
+
+    def stats(self) -> dict[str, float]:
+        return {"travelled_m": round(self._travelled_m, 3),
+                "goal_distance_m": round(self._goal_distance_m, 3)}
+
+    def disconnect(self) -> None:
+        self.camera.stop()
+        self._world.close()
+
+
+def build_backend(config: Config, options: BackendOptions) -> Robot:
+    """The world in its seed scene, rendering at the policy's frame size (the options').
     With ``[randomize] enabled = true`` the [sim] knobs are drawn once, seeded by [sim] seed."""
     world = JetbotWorld(config.sim, gui=options.gui, image_size=tuple(options.frame_size))
     if config.randomize.enabled:
         rng = np.random.default_rng(config.sim.seed)
         world.reset(sim=sample(config.sim, config.randomize, rng))
-    camera = SimCamera(world, config.sim)
-    drive = SimDrive(world)
-
-    # What the robot did, kept up to date here: the summary is built after the world closed.
-    done = {"travelled_m": 0.0, "goal_distance_m": world.distance_to_block()}
-
-    def advance(dt: float) -> None:
-        x0, y0, _ = world.robot_pose()
-        world.step(dt)
-        x1, y1, _ = world.robot_pose()
-        done["travelled_m"] += math.hypot(x1 - x0, y1 - y0)
-        done["goal_distance_m"] = world.distance_to_block()
-        camera.capture()
-
-    def telemetry() -> dict[str, object]:
-        return {"pose": list(world.robot_pose()), "sim_time": world.sim_time}
-
-    def counters() -> dict[str, float]:
-        return {key: round(value, 3) for key, value in done.items()}
-
-    def close() -> None:
-        camera.stop()
-        world.close()
-
-    return Backend(camera=camera, drive=drive, advance=advance, close=close, telemetry=telemetry,
-                   counters=counters)
+    return SimRobot(world, config.sim)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from jetbot_rt.actions import finite_pair
 from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
 from jetbot_rt.sim import appearance
@@ -171,9 +172,8 @@ class JetbotWorld:
     def set_duty(self, left: float, right: float) -> None:
         """Duties in [-1, 1] as the motor board gets them (clipped like a PWM output);
         the motors act on them from the next ``step`` (after ``[sim] latency``)."""
-        if not (math.isfinite(left) and math.isfinite(right)):
-            raise ValueError(f"non-finite duty ({left}, {right})")
-        self._duty = (min(max(float(left), -1.0), 1.0), min(max(float(right), -1.0), 1.0))
+        left, right = finite_pair(left, right)  # NonFinite: a ValueError and a Fault
+        self._duty = (min(max(left, -1.0), 1.0), min(max(right, -1.0), 1.0))
         self._motors.command(self._steps, *self._duty)
 
     def step(self, dt: float) -> None:

@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from jetbot_rt.actions import ActionPipeline, resolve_max_speed
+from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.config import Config, SimConfig
 from jetbot_rt.errors import UsageError
 
@@ -73,11 +73,7 @@ def forward_reward(distance: float) -> float:
 
 def action_pipeline_of(config: Config, model_max_speed: float | None = None) -> ActionPipeline:
     """The pipeline the runtime builds: max_speed from config, else the model's, else 0.1."""
-    return ActionPipeline(
-        max_speed=resolve_max_speed(config.actions.max_speed, model_max_speed),
-        trim=(float(config.actions.trim[0]), float(config.actions.trim[1])),
-        sign=(int(config.actions.sign[0]), int(config.actions.sign[1])),
-    )
+    return ActionPipeline.from_config(config.actions, model_max_speed)
 
 
 def max_speed_of(config: Config) -> float:

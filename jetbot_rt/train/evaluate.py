@@ -13,7 +13,7 @@ import numpy as np
 
 from jetbot_rt.config import Config
 from jetbot_rt.errors import UsageError
-from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
+from jetbot_rt.policy import OnnxPolicy, resolve_policy_path
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of, get_task
 from jetbot_rt.train.video import EpisodeRecording, timed
 
@@ -80,7 +80,7 @@ def evaluate(
         raise UsageError(f"--num-envs must be > 0, got {num_workers}")
     spec = get_task(task)
     config = config or Config()
-    path = Path(policy_path) if policy_path is not None else bundled_policy_path()
+    path = resolve_policy_path(policy_path)
     policy = load_policy(path, config)  # fail early, in this process, on a bad file
     seeds = [seed + i for i in range(episodes)]
     workers = min(num_workers, episodes)
