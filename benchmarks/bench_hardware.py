@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus
+from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import MotorHatDrive, WaveshareDrive
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TICKS = 1000
@@ -80,12 +80,12 @@ def camera_frame_age(seconds: float, loop_hz: float) -> dict[str, float]:
         config.write_text('[camera]\nsource = "gst:videotestsrc is-live=true '
                           'pattern=ball ! video/x-raw,framerate=30/1"\n')
         telemetry = root / "telemetry.jsonl"
-        env = dict(os.environ, **{EMULATOR_ENV: str(root / "chip.json"),
-                                  "JETBOT_RT_RUNTIME_DIR": str(root / "run")})
+        env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(root / "run"))
         subprocess.run(
             [sys.executable, "-m", "jetbot_rt.cli", "run", "--backend", "real",
              "--policy", str(policy), "--config", str(config), "--telemetry", str(telemetry),
-             "--duration", str(seconds), "--rate", str(loop_hz)],
+             "--duration", str(seconds), "--rate", str(loop_hz),
+             "--board-emulator", str(root / "chip.json")],
             check=True, env=env, capture_output=True, timeout=seconds + 60,
         )
         records = [json.loads(line) for line in telemetry.read_text().splitlines()]

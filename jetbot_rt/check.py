@@ -15,9 +15,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from jetbot_rt import signals
-from jetbot_rt.config import Config, load_config
+from jetbot_rt.config import Config, load_config, set_value
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
+from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument
 
 SPIN_DUTY = 0.3
 SPIN_SECONDS = 0.5
@@ -39,6 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--spin", action="store_true",
         help=f"pulse each wheel forward at duty {SPIN_DUTY} for {SPIN_SECONDS} s",
     )
+    add_emulator_argument(parser)
 
 
 def _row(name: str, probe: Callable[[], str]) -> Row:
@@ -49,18 +51,20 @@ def _row(name: str, probe: Callable[[], str]) -> Row:
 
 
 def check_motor_board(config: Config) -> str:
-    from jetbot_rt.hal.i2c import I2CBus
-    from jetbot_rt.hal.motors import PRE_SCALE, read_mode1
+    from jetbot_rt.hal.i2c import I2CBus, emulator_notice
+    from jetbot_rt.hal.motors import read_mode1
+    from jetbot_rt.hal.pca9685 import OSCILLATOR_HZ, PRE_SCALE
 
     motors = config.motors
-    with I2CBus.open(motors.i2c_bus, motors.i2c_retries, motors.address) as bus:
+    with I2CBus.for_motors(motors) as bus:
         mode1 = read_mode1(bus, motors.address)
         prescale = bytearray(1)
         bus.writeto_then_readfrom(motors.address, bytes((PRE_SCALE,)), prescale)
-    pwm_hz = 25e6 / 4096 / (prescale[0] + 1)
+    pwm_hz = OSCILLATOR_HZ / 4096 / (prescale[0] + 1)
+    emulated = f"; {emulator_notice(motors.emulator)}" if motors.emulator else ""
     return (
         f"PCA9685 answers on I2C bus {motors.i2c_bus} at 0x{motors.address:02x} "
-        f"(MODE1 0x{mode1:02x}, PWM {pwm_hz:.0f} Hz); layout {motors.layout}"
+        f"(MODE1 0x{mode1:02x}, PWM {pwm_hz:.0f} Hz); layout {motors.layout}{emulated}"
     )
 
 
@@ -162,6 +166,11 @@ def print_table(rows: list[Row]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    if args.board_emulator is not None:
+        try:
+            set_value(config.motors, "motors", "emulator", args.board_emulator)
+        except UsageError as exc:
+            raise UsageError(f"{EMULATOR_FLAG}: {exc}") from None
     config.validate()
     if args.policy == "":
         raise UsageError("--policy must be a file name, not empty")
@@ -172,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
 
         # The wheels move only if this process owns the bus: refused (exit 2, naming the
         # owner) while a runtime drives, whatever its environment or user.
-        owner = BoardLock.acquire(config.motors.i2c_bus)
+        owner = BoardLock.acquire(config.motors.i2c_bus, config.motors.emulator)
     rows = [_row("motor board", lambda: check_motor_board(config))]
     if args.spin:
         rows.append(_row("spin", lambda: spin_wheels(config)))

@@ -156,6 +156,10 @@ class MotorsConfig:
     """MotorKit's default; the chip's prescaler tops out at about 1526 Hz and takes the nearest."""
     i2c_retries: int = field(default=3, metadata=_check(lambda v: 0 <= v <= 20, "0..20"))
     """Extra attempts after a transient I2C OSError before it counts as a fault."""
+    emulator: str | None = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    """Tests and dry runs only: the register-level PCA9685 emulator whose registers live in
+    this file stands in for the board on ``i2c_bus`` (``jetbot_rt.testing``; every command
+    says so on stdout, ``run`` in its ``start`` event too). ``--board-emulator`` overrides."""
 
 
 @dataclass

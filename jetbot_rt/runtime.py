@@ -28,6 +28,7 @@ from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.config import Config, load_config, set_value
 from jetbot_rt.errors import EXIT_USAGE, Fault, UsageError, first_line
 from jetbot_rt.hal import BackendOptions, Robot, make_backend
+from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument, emulator_notice
 from jetbot_rt.hal.registry import BACKEND_MODULES
 from jetbot_rt.loop import ControlLoop, LoopStats, Safety, Schedule, TickResult
 from jetbot_rt.policy import OnnxPolicy, bundled_policy_path, resolve_policy_path, shown
@@ -66,6 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="record every tick's frame and record into this new directory "
                              "(docs/RECORDING.md; look at it with jetbot-rt report DIR)")
     parser.add_argument("--gui", action="store_true", help="open PyBullet's window (sim only)")
+    add_emulator_argument(parser)
 
 
 def same_file(a: str, b: str) -> bool:
@@ -85,6 +87,7 @@ def build_config(args: argparse.Namespace) -> Config:
         ("telemetry", "path", args.telemetry, "--telemetry"),
         ("policy", "path", args.policy, "--policy"),
         ("record", "path", getattr(args, "record", None), "--record"),
+        ("motors", "emulator", getattr(args, "board_emulator", None), EMULATOR_FLAG),
     ]
     for section, key, value, flag in overrides:
         if value is None:
@@ -364,12 +367,15 @@ class Runtime:
             rate_hz=loop_cfg.rate_hz, max_speed=loaded.actions.max_speed,
             watchdog_timeout_s=loop_cfg.watchdog_timeout_s,
             max_frame_age_s=self.config.max_frame_age_s, warmup_ms=round(warmup_ms, 3),
+            board_emulator=self.config.motors.emulator,
         )
         notifier.ready(f"ready: policy warmed up ({warmup_ms:.1f} ms), driving")
         loop_thread = threading.Thread(
             target=loop.run, args=(self.args.duration,), name="jetbot-rt-loop", daemon=True
         )
         print(f"driving at {loop_cfg.rate_hz:g} Hz; Ctrl-C or `jetbot-rt stop` to stop", flush=True)
+        if self.config.motors.emulator:
+            print(emulator_notice(self.config.motors.emulator), flush=True)
         watchdog.start()
         loop_thread.start()
         while loop_thread.is_alive() and not self.latch.tripped:

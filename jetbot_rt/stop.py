@@ -26,6 +26,7 @@ is bad (the stop is still written, on the default bus and address).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from collections.abc import Callable
@@ -33,9 +34,10 @@ from collections.abc import Callable
 from jetbot_rt.config import MotorsConfig, load_config
 from jetbot_rt.control import request_stop
 from jetbot_rt.errors import EXIT_USAGE, UsageError, first_line
-from jetbot_rt.hal.i2c import I2CBus, I2CFault
-from jetbot_rt.hal.motors import MODE1_SLEEP, hardware_stop, read_mode1, stop_and_sleep
+from jetbot_rt.hal.i2c import I2CBus, I2CFault, add_emulator_argument, emulator_notice
+from jetbot_rt.hal.motors import hardware_stop, read_mode1, stop_and_sleep
 from jetbot_rt.hal.ownership import bus_device, describe, owned, owner_pids
+from jetbot_rt.hal.pca9685 import MODE1_SLEEP
 
 EXIT_BOARD_UNREACHABLE = 1
 CONFIRM_S = 3.0
@@ -45,6 +47,7 @@ its next write (one period, then its exit: camera child, telemetry)."""
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML config file (for [motors] bus and address)")
+    add_emulator_argument(parser)
 
 
 def _motors(path: str | None) -> tuple[MotorsConfig, str | None]:
@@ -60,7 +63,7 @@ def _motors(path: str | None) -> tuple[MotorsConfig, str | None]:
 def _write_stop(motors: MotorsConfig, write: Callable[[I2CBus, int], None]) -> str | None:
     """The hardware stop; None when written, else why not."""
     try:
-        with I2CBus.open(motors.i2c_bus, motors.i2c_retries, motors.address) as bus:
+        with I2CBus.for_motors(motors) as bus:
             write(bus, motors.address)
     except (UsageError, I2CFault) as exc:
         return str(exc)
@@ -69,14 +72,14 @@ def _write_stop(motors: MotorsConfig, write: Callable[[I2CBus, int], None]) -> s
 
 def _confirm(motors: MotorsConfig) -> str | None:
     """None when the board is off and nobody owns it, else what is wrong."""
-    device = bus_device(motors.i2c_bus)
+    device = bus_device(motors.i2c_bus, motors.emulator)
     deadline = time.monotonic() + CONFIRM_S
     while owned(device) and time.monotonic() < deadline:
         time.sleep(0.02)
     still_owned = owned(device)
     owners = owner_pids(device)
     try:
-        with I2CBus.open(motors.i2c_bus, motors.i2c_retries, motors.address) as bus:
+        with I2CBus.for_motors(motors) as bus:
             if not read_mode1(bus, motors.address) & MODE1_SLEEP:
                 stop_and_sleep(bus, motors.address)  # again; someone set the chip up
                 return f"the board was set up again by {describe(owners)}"
@@ -96,6 +99,10 @@ def run(args: argparse.Namespace) -> int:
         # stop the stop. Fall back to the default bus and address, and say so.
         motors = MotorsConfig()
         exit_code = EXIT_USAGE
+    if args.board_emulator:  # the harness's board, whatever the config says or failed to say
+        motors = dataclasses.replace(motors, emulator=args.board_emulator)
+    if motors.emulator:
+        print(f"jetbot-rt stop: {emulator_notice(motors.emulator)}", flush=True)
     where = f"I2C bus {motors.i2c_bus} address 0x{motors.address:02x}"
     _write_stop(motors, hardware_stop)  # first: nothing may delay it
     reply = request_stop()

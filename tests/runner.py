@@ -13,6 +13,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 JETBOT_RT = shutil.which("jetbot-rt") or str(Path(sys.executable).parent / "jetbot-rt")
+BOARD_COMMANDS = ("run", "check", "stop")
+"""The subcommands that touch the motor board, so take ``--board-emulator``."""
+
+
+def on_emulator(args: list[str], chip: Path | str) -> list[str]:
+    """``args`` (a subcommand first) with the PCA9685 emulator in ``chip`` as the board, for
+    the commands that touch one; others unchanged."""
+    if args and args[0] in BOARD_COMMANDS:
+        return [*args, "--board-emulator", str(chip)]
+    return list(args)
 
 
 @dataclass
@@ -125,8 +135,7 @@ class RuntimeProcess:
                  extra_env: dict | None = None) -> None:
         import os
 
-        from jetbot_rt.hal.i2c import EMULATOR_ENV
-        from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+        from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
         self.root = root
         self.config = root / "config.toml"
@@ -140,15 +149,17 @@ class RuntimeProcess:
         self.env.pop("NOTIFY_SOCKET", None)
         self.env.pop("WATCHDOG_USEC", None)
         self.chip = None
+        self.chip_file: Path | None = None
         if backend == "real":
-            self.env[EMULATOR_ENV] = str(root / "chip.json")
-            self.chip = PCA9685Emulator(0x60, state_file=root / "chip.json")
+            self.chip_file = root / "chip.json"
+            self.chip = PCA9685Emulator(0x60, state_file=self.chip_file)
         self.process: subprocess.Popen[str] | None = None
         self.t_started = 0.0
 
     def start(self) -> RuntimeProcess:
         self.t_started = time.monotonic()
-        self.process = subprocess.Popen([JETBOT_RT, *self.args], stdout=subprocess.PIPE,
+        self.process = subprocess.Popen([JETBOT_RT, *self.board(self.args)],
+                                        stdout=subprocess.PIPE,
                                         stderr=subprocess.PIPE, text=True, env=self.env,
                                         cwd=self.root, preexec_fn=_no_core_dump)
         return self
@@ -199,8 +210,12 @@ class RuntimeProcess:
     def jetbot_rt(self, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
         """Another ``jetbot-rt`` command in the same environment (``stop``: what systemd's
         ExecStopPost runs)."""
-        return subprocess.run([JETBOT_RT, *args], capture_output=True, text=True,
-                              timeout=timeout, env=self.env)
+        return subprocess.run([JETBOT_RT, *self.board(list(args))], capture_output=True,
+                              text=True, timeout=timeout, env=self.env)
+
+    def board(self, args: list[str]) -> list[str]:
+        """``args`` on this process's emulated board (``--board-emulator``), if it has one."""
+        return args if self.chip_file is None else on_emulator(args, self.chip_file)
 
 
 def assert_fixed_rate(ticks: list[dict], period: float) -> float:

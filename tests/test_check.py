@@ -11,8 +11,8 @@ import policy_models
 import pytest
 
 from jetbot_rt.check import SPIN_DUTY
-from jetbot_rt.hal.i2c import EMULATOR_ENV
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.hal.i2c import EMULATOR_FLAG
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 
 @pytest.fixture
@@ -29,10 +29,10 @@ def write_config(robot: Path, source: str, fps: float = 30) -> Path:
 
 
 def check(robot: Path, config: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ, **{EMULATOR_ENV: str(robot / "chip.json"),
-                              "JETBOT_RT_RUNTIME_DIR": str(robot / "run")})
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(robot / "run"))
     return subprocess.run(
         [sys.executable, "-m", "jetbot_rt.cli", "check", "--config", str(config),
+         EMULATOR_FLAG, str(robot / "chip.json"),
          "--policy", str(robot / "policy.onnx"), "--frames", "10", *args],
         capture_output=True, text=True, timeout=60, env=env,
     )
@@ -106,10 +106,10 @@ def test_a_slow_camera_is_called_slow_and_a_stalled_one_stalled(robot, source: s
                                                                  expected: str,
                                                                  not_expected: str) -> None:
     config = write_config(robot, source)
-    env = dict(os.environ, **{EMULATOR_ENV: str(robot / "chip.json"),
-                              "JETBOT_RT_RUNTIME_DIR": str(robot / "run")})
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(robot / "run"))
     result = subprocess.run(
         [sys.executable, "-m", "jetbot_rt.cli", "check", "--config", str(config),
+         EMULATOR_FLAG, str(robot / "chip.json"),
          "--policy", str(robot / "policy.onnx"), "--frames", "30"],
         capture_output=True, text=True, timeout=60, env=env)
     assert result.returncode == 1, result.stdout + result.stderr

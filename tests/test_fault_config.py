@@ -41,10 +41,10 @@ def run_real(tmp_path: Path, config: str, *flags: str, env: dict | None = None):
     path.write_text(f'[camera]\nsource = "gst:videotestsrc name={mark} is-live=true"\n'
                     + config)
     chip = tmp_path / "chip.json"
-    full_env = dict(os.environ, JETBOT_RT_I2C_EMULATOR=str(chip),
-                    JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"), **(env or {}))
+    full_env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"), **(env or {}))
     result = run_cli(["run", "--backend", "real", "--policy", str(policy), "--config",
-                      str(path), "--duration", "2", *flags], env=full_env, timeout=60)
+                      str(path), "--board-emulator", str(chip), "--duration", "2", *flags],
+                     env=full_env, timeout=60)
     assert not processes_with(mark)
     return result, chip
 
@@ -187,16 +187,15 @@ def test_a_non_finite_answer_to_the_first_frame_is_bad_input(tmp_path: Path, mod
     config.write_text(f'[camera]\nsource = "gst:videotestsrc name={mark} pattern=black '
                       'is-live=true"\n')
     chip = tmp_path / "chip.json"
-    env = dict(os.environ, JETBOT_RT_I2C_EMULATOR=str(chip),
-               JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
     telemetry = tmp_path / "t.jsonl"
     result = run_cli(["run", "--backend", "real", "--policy", str(policy), "--config",
-                      str(config)], telemetry=telemetry, env=env)
+                      str(config), "--board-emulator", str(chip)], telemetry=telemetry, env=env)
     assert result.returncode == 2, result.stdout + result.stderr
     (line,) = result.stderr.strip().splitlines()
     assert "on the first camera frame" in line and "non-finite" in line, line
     assert not result.ticks
-    from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+    from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
     assert PCA9685Emulator(0x60, state_file=chip).refresh().all_off()
     assert not processes_with(mark)

@@ -16,12 +16,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from runner import JETBOT_RT, wait_for
+from runner import JETBOT_RT, on_emulator, wait_for
 from test_fault_matrix import record_figures
 
-from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus
+from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 TIMEOUT_S = 20.0
 """A hang fails the case: a stop or a refusal takes an interpreter start, well under this."""
@@ -88,12 +88,12 @@ def driven_board(tmp: Path) -> PCA9685Emulator:
 
 
 def env_for(tmp: Path, **extra: str) -> dict[str, str]:
-    return dict(os.environ, **{EMULATOR_ENV: str(tmp / "chip.json"),
-                               "JETBOT_RT_RUNTIME_DIR": str(tmp / "run"), **extra})
+    return dict(os.environ, **{"JETBOT_RT_RUNTIME_DIR": str(tmp / "run"), **extra})
 
 
 def jetbot_rt(tmp: Path, *args: str, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([JETBOT_RT, *args], capture_output=True, text=True,
+    return subprocess.run([JETBOT_RT, *on_emulator(list(args), tmp / "chip.json")],
+                          capture_output=True, text=True,
                           timeout=TIMEOUT_S, env=env or env_for(tmp), cwd=tmp)
 
 
@@ -111,7 +111,8 @@ def test_stop_writes_the_hardware_stop_whatever_the_config(tmp_path: Path, kind:
     chip = driven_board(tmp_path)
     config = make(tmp_path)
     t0 = time.monotonic()
-    proc = subprocess.Popen([JETBOT_RT, "stop", "--config", str(config)], text=True,
+    proc = subprocess.Popen([JETBOT_RT, "stop", "--config", str(config), "--board-emulator",
+                             str(tmp_path / "chip.json")], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env=env_for(tmp_path), cwd=tmp_path)
     try:

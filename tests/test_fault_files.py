@@ -16,20 +16,19 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import JETBOT_RT
+from runner import JETBOT_RT, on_emulator
 
-from jetbot_rt.hal.i2c import EMULATOR_ENV
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
 from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 MU = (1.0, -0.5)
 PREVIOUS = '{"t":1.0,"event":"safe_stop","reason":"the crash to investigate"}\n'
 
 
 def cli(tmp: Path, *args: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, **{EMULATOR_ENV: str(tmp / "chip.json"),
-                              "JETBOT_RT_RUNTIME_DIR": str(tmp / "run")})
-    return subprocess.run([JETBOT_RT, *args], capture_output=True, text=True, timeout=60,
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp / "run"))
+    return subprocess.run([JETBOT_RT, *on_emulator(list(args), tmp / "chip.json")],
+                          capture_output=True, text=True, timeout=60,
                           env=env, cwd=tmp)
 
 

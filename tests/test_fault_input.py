@@ -46,6 +46,7 @@ OUT_OF_RANGE = {
     ("motors", "right_motor"): 0,
     ("motors", "pwm_frequency"): 2000.0,
     ("motors", "i2c_retries"): 21,
+    ("motors", "emulator"): "",
     ("camera", "source"): "v4l2",
     ("camera", "sensor_id"): 8,
     ("camera", "capture_width"): 8,
@@ -316,8 +317,9 @@ def test_a_second_runtime_is_refused_before_it_touches_the_board(tmp_path) -> No
     try:
         first.start()
         first.wait_ticks(10)
-        result = run_cli(["run", "--backend", "real", "--policy", str(policy),
-                          "--config", str(first.config)], env=first.env, timeout=60)
+        result = run_cli(first.board(["run", "--backend", "real", "--policy", str(policy),
+                                      "--config", str(first.config)]), env=first.env,
+                         timeout=60)
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and f"is driven by pid {first.pid}" in lines[0], lines

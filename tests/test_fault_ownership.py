@@ -25,7 +25,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import JETBOT_RT, RuntimeProcess, processes_with, wait_for
+from runner import JETBOT_RT, RuntimeProcess, on_emulator, processes_with, wait_for
 from test_fault_matrix import (
     MU,
     assert_no_gst_left,
@@ -34,8 +34,6 @@ from test_fault_matrix import (
     real_config,
     record_figures,
 )
-
-from jetbot_rt.hal.i2c import EMULATOR_ENV
 
 OFF_AFTER_STOP_S = 10.0
 """Bound asserted on: ``jetbot-rt stop`` started -> every output of the board off (an
@@ -55,7 +53,8 @@ def start_real(tmp: Path, **kwargs) -> tuple[RuntimeProcess, str]:
 
 
 def stop_in(rt: RuntimeProcess, env: dict) -> tuple[subprocess.Popen, float]:
-    proc = subprocess.Popen([JETBOT_RT, "stop"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([JETBOT_RT, *on_emulator(["stop"], rt.chip_file)],
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
     return proc, time.monotonic()
 
@@ -143,8 +142,8 @@ def test_stop_never_reports_success_while_a_runtime_drives(tmp_path: Path, momen
         assert wait_for(lambda: rt.process.poll() is not None or MOMENTS[moment](rt), 60.0,
                         0.002) is not None
         t0 = time.monotonic()
-        stop = subprocess.run([JETBOT_RT, "stop"], capture_output=True, text=True, env=env,
-                              timeout=30)
+        stop = subprocess.run([JETBOT_RT, *on_emulator(["stop"], rt.chip_file)],
+                              capture_output=True, text=True, env=env, timeout=30)
         t_reported = time.monotonic()
         reported_off = rt.board_off()
         runtime_gone = rt.process.poll() is not None
@@ -169,7 +168,7 @@ HOLDER = """
 import fcntl, os, sys, time
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import MODE1, MODE1_AI, WaveshareDrive
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 lock = os.open(sys.argv[1] + ".owner", os.O_RDONLY | os.O_CREAT, 0o666)
 fcntl.flock(lock, fcntl.LOCK_EX)
 bus = I2CBus(PCA9685Emulator(0x60, state_file=sys.argv[1]), 1)
@@ -190,14 +189,13 @@ def test_stop_names_a_process_it_cannot_defeat(tmp_path: Path, behaviour: str) -
     then says it cannot confirm it (exit 1), naming the pid; once that process is gone, a
     stop confirms (exit 0)."""
     chip_file = tmp_path / "chip.json"
-    env = dict(os.environ, **{EMULATOR_ENV: str(chip_file),
-                              "JETBOT_RT_RUNTIME_DIR": str(tmp_path / "run")})
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
+    stop_cmd = [JETBOT_RT, *on_emulator(["stop"], chip_file)]
     holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(chip_file), behaviour],
                               stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert holder.stdout.readline().strip() == "ready"
-        stop = subprocess.run([JETBOT_RT, "stop"], capture_output=True, text=True, env=env,
-                              timeout=30)
+        stop = subprocess.run(stop_cmd, capture_output=True, text=True, env=env, timeout=30)
         assert stop.returncode == 1, stop.stdout + stop.stderr
         line = one_line(stop.stderr)
         assert f"pid {holder.pid}" in line and "NOT confirmed off" in line, line
@@ -206,10 +204,9 @@ def test_stop_names_a_process_it_cannot_defeat(tmp_path: Path, behaviour: str) -
     finally:
         holder.kill()
         holder.communicate()
-    again = subprocess.run([JETBOT_RT, "stop"], capture_output=True, text=True, env=env,
-                           timeout=30)
+    again = subprocess.run(stop_cmd, capture_output=True, text=True, env=env, timeout=30)
     assert again.returncode == 0, again.stderr
-    from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+    from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
     chip = PCA9685Emulator(0x60, state_file=chip_file)
     assert chip.all_off() and chip.sleeping
@@ -232,11 +229,13 @@ def test_a_second_owner_is_refused_whatever_its_environment(tmp_path: Path,
         else:
             env = env_without_runtime_dirs(rt, XDG_RUNTIME_DIR=str(tmp_path / "xdg"))
         second = subprocess.run(
-            [JETBOT_RT, "run", "--backend", "real", "--policy", rt.args[4],
-             "--config", str(rt.config), "--duration", "5"],
+            [JETBOT_RT, *on_emulator(["run", "--backend", "real", "--policy", rt.args[4],
+                                      "--config", str(rt.config), "--duration", "5"],
+                                     rt.chip_file)],
             capture_output=True, text=True, env=env, timeout=60)
-        spin = subprocess.run([JETBOT_RT, "check", "--spin", "--config", str(rt.config),
-                               "--frames", "2"],
+        spin = subprocess.run([JETBOT_RT, *on_emulator(["check", "--spin", "--config",
+                                                        str(rt.config), "--frames", "2"],
+                                                       rt.chip_file)],
                               capture_output=True, text=True, env=env, timeout=60)
         before = rt.tick_count()
         rt.wait_ticks(before + 10)  # the owner drives on
@@ -269,7 +268,7 @@ def test_two_runtimes_started_at_once_exactly_one_drives(tmp_path: Path, attempt
         runs.append(RuntimeProcess(root, "real", policy,
                                    config=real_config(live_camera(mark + name)) + LOOP))
     a, b = runs
-    b.env[EMULATOR_ENV] = a.env[EMULATOR_ENV]  # the same board, another runtime directory
+    b.chip_file = a.chip_file  # the same board, another runtime directory
     ended = {}
     try:
         for rt in runs:
@@ -324,7 +323,7 @@ from jetbot_rt.cli import main
 import jetbot_rt.stop
 print("ready", flush=True)
 sys.stdin.readline()
-sys.exit(main(["stop"]))
+sys.exit(main(["stop", "--board-emulator", sys.argv[1]]))
 """
 
 
@@ -337,18 +336,19 @@ def test_stop_during_check_spin_ends_the_pulse(tmp_path: Path) -> None:
     config = tmp_path / "robot.toml"
     config.write_text(real_config(live_camera(mark)))
     chip_file = tmp_path / "chip.json"
-    from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+    from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
     chip = PCA9685Emulator(0x60, state_file=chip_file)
-    env = dict(os.environ, **{EMULATOR_ENV: str(chip_file),
-                              "JETBOT_RT_RUNTIME_DIR": str(tmp_path / "run")})
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
     # The stop's interpreter is started first and waits for a line: it acts at once, inside
     # the first 0.5 s pulse.
-    stop = subprocess.Popen([sys.executable, "-c", WARM_STOP], stdin=subprocess.PIPE,
+    stop = subprocess.Popen([sys.executable, "-c", WARM_STOP, str(chip_file)],
+                            stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(env, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "other")))
-    check = subprocess.Popen([JETBOT_RT, "check", "--spin", "--config", str(config),
-                              "--frames", "5"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    check = subprocess.Popen([JETBOT_RT, *on_emulator(["check", "--spin", "--config",
+                                                       str(config), "--frames", "5"], chip_file)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True, env=env)
     try:
         assert stop.stdout.readline().strip() == "ready"

@@ -213,7 +213,8 @@ def test_stop_command_under_a_signal_still_stops(tmp_path: Path, sig: int) -> No
 
         from runner import JETBOT_RT
 
-        stopper = subprocess.Popen([JETBOT_RT, "stop"], env=rt.env, stdout=subprocess.PIPE,
+        stopper = subprocess.Popen([JETBOT_RT, *rt.board(["stop"])], env=rt.env,
+                                   stdout=subprocess.PIPE,
                                    stderr=subprocess.PIPE, text=True)
         assert wait_for(lambda: stopper.poll() is not None or handlers_installed(stopper.pid),
                         30, interval=0.001) is not None

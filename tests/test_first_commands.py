@@ -128,7 +128,7 @@ def test_gui_under_a_software_rendered_display_keeps_driving(tmp_path) -> None:
 def test_spin_turns_each_wheel_forward_as_the_runtime_would(robot) -> None:  # noqa: F811
     """docs/HARDWARE.md: check --spin shows which way each wheel turns; with [actions] sign
     it pulses the direction the runtime calls forward."""
-    from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+    from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
     chip = PCA9685Emulator(0x60, state_file=robot / "chip.json")
     config = write_config(robot, "gst:videotestsrc is-live=true")

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import pytest
 
+from jetbot_rt.config import MotorsConfig
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus, I2CFault, open_smbus
-from jetbot_rt.hal.pca9685_emulator import LED0_ON_L, MODE1, PCA9685Emulator
+from jetbot_rt.hal.i2c import I2CBus, I2CFault, open_smbus
+from jetbot_rt.hal.pca9685 import LED0_ON_L, MODE1
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 ADDR = 0x60
 
@@ -74,36 +76,45 @@ def test_adafruit_pca9685_runs_on_this_bus(chip) -> None:
     assert pca.channels[5].duty_cycle == 0x8000
 
 
-def test_environment_selects_the_emulator(tmp_path, monkeypatch) -> None:
-    monkeypatch.setenv(EMULATOR_ENV, str(tmp_path / "chip.json"))
-    bus = I2CBus.open(1, emulated_address=0x40)
+def test_the_config_names_the_emulator(tmp_path) -> None:
+    state = str(tmp_path / "chip.json")
+    bus = I2CBus.for_motors(MotorsConfig(address=0x40, emulator=state))
     bus.writeto(0x40, bytes((MODE1, 0x20)))
-    assert PCA9685Emulator(state_file=tmp_path / "chip.json").registers[MODE1] == 0x20
+    assert PCA9685Emulator(state_file=state).registers[MODE1] == 0x20
 
 
-def test_missing_device_node_is_a_usage_error(monkeypatch) -> None:
-    monkeypatch.delenv(EMULATOR_ENV, raising=False)
+def test_the_environment_chooses_no_emulator(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("JETBOT_RT_I2C_EMULATOR", str(tmp_path / "chip.json"))
+    with pytest.raises(UsageError, match="/dev/i2c-250"):
+        open_smbus(250)
+    assert not (tmp_path / "chip.json").exists()
+
+
+def test_an_emulator_file_that_cannot_be_made_is_a_usage_error(tmp_path) -> None:
+    with pytest.raises(UsageError, match=r"emulator's state file .*No such file"):
+        open_smbus(1, emulator=str(tmp_path / "missing" / "chip.json"))
+
+
+def test_missing_device_node_is_a_usage_error() -> None:
     with pytest.raises(UsageError, match="/dev/i2c-250"):
         open_smbus(250)
 
 
-def test_missing_device_node_names_the_os_error_in_words(monkeypatch) -> None:
-    monkeypatch.delenv(EMULATOR_ENV, raising=False)
+def test_missing_device_node_names_the_os_error_in_words() -> None:
     with pytest.raises(UsageError) as info:
         open_smbus(250)
     assert str(info.value) == ("cannot open /dev/i2c-250: No such file or directory (is the bus "
                                "enabled and is this user in the i2c group?)")
 
 
-def test_defaults_three_retries_and_the_emulator_at_0x60(tmp_path, monkeypatch) -> None:
+def test_defaults_three_retries_and_the_emulator_at_0x60(tmp_path) -> None:
     chip = PCA9685Emulator(0x60)
     chip.fail_next = 4
     with pytest.raises(I2CFault, match=r"\(after 4 attempts\)"):
         I2CBus(chip, 1).writeto(0x60, bytes((MODE1, 0x20)))
     chip.fail_next = 3
     I2CBus(chip, 1).writeto(0x60, bytes((MODE1, 0x20)))
-    monkeypatch.setenv(EMULATOR_ENV, str(tmp_path / "chip.json"))
-    assert open_smbus(1).address == 0x60
+    assert open_smbus(1, emulator=str(tmp_path / "chip.json")).address == 0x60
 
 
 def test_a_combined_transfer_returns_what_its_read_got(chip) -> None:
@@ -115,17 +126,16 @@ def test_a_combined_transfer_returns_what_its_read_got(chip) -> None:
     assert chip.registers[MODE1] == 0x20
 
 
-def test_retries_are_counted_from_zero_and_open_defaults_to_three(tmp_path, monkeypatch) -> None:
+def test_retries_are_counted_from_zero_and_open_defaults_to_three(tmp_path) -> None:
     chip = PCA9685Emulator(0x60)
     bus = I2CBus(chip, 1)
     assert bus.retried == 0
     chip.fail_next = 2
     bus.writeto(0x60, bytes((MODE1, 0x20)))
     assert bus.retried == 2
-    monkeypatch.setenv(EMULATOR_ENV, str(tmp_path / "chip.json"))
     shared = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
     shared.update(fail_next=3)
-    with I2CBus.open(1) as opened:
+    with I2CBus.open(1, emulator=str(tmp_path / "chip.json")) as opened:
         opened.writeto(0x60, bytes((MODE1, 0x20)))
         assert opened.retried == 3
 

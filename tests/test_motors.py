@@ -10,7 +10,7 @@ import pytest
 
 from jetbot_rt.config import MotorsConfig
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus, I2CFault
+from jetbot_rt.hal.i2c import I2CBus, I2CFault
 from jetbot_rt.hal.motors import (
     MODE1_AI,
     MotorHatDrive,
@@ -20,7 +20,8 @@ from jetbot_rt.hal.motors import (
     prescale_for,
     read_mode1,
 )
-from jetbot_rt.hal.pca9685_emulator import PRE_SCALE, PCA9685Emulator
+from jetbot_rt.hal.pca9685 import PRE_SCALE
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 ADDR = 0x60
 STEP = 1 / 4096  # one PCA9685 count
@@ -146,21 +147,19 @@ def test_hardware_stop_function_on_a_bare_bus(chip) -> None:
 # ---- open_drive from config --------------------------------------------------------------
 
 
-def test_open_drive_builds_the_configured_layout(tmp_path, monkeypatch) -> None:
+def test_open_drive_builds_the_configured_layout(tmp_path) -> None:
     state = tmp_path / "chip.json"
-    monkeypatch.setenv(EMULATOR_ENV, str(state))
-    drive = open_drive(MotorsConfig(layout="adafruit_motorhat"))
+    drive = open_drive(MotorsConfig(layout="adafruit_motorhat", emulator=str(state)))
     assert isinstance(drive, MotorHatDrive)
     drive.write(0.5, 0.0)
     assert PCA9685Emulator(state_file=state).channel(9).duty == pytest.approx(0.5, abs=STEP)
 
 
-def test_open_drive_without_a_board_is_a_usage_error(tmp_path, monkeypatch) -> None:
+def test_open_drive_without_a_board_is_a_usage_error(tmp_path) -> None:
     state = tmp_path / "chip.json"
     PCA9685Emulator(0x40, state_file=state)  # the board answers at another address
-    monkeypatch.setenv(EMULATOR_ENV, str(state))
     with pytest.raises(UsageError, match=r"no motor board \(waveshare\) .* bus 1 at address 0x60"):
-        open_drive(MotorsConfig(i2c_retries=0))
+        open_drive(MotorsConfig(i2c_retries=0, emulator=str(state)))
 
 
 def test_motorkit_imports_where_blinka_does_not_know_the_board(tmp_path) -> None:
@@ -171,7 +170,7 @@ def test_motorkit_imports_where_blinka_does_not_know_the_board(tmp_path) -> None
     code = (
         "from jetbot_rt.hal.i2c import I2CBus\n"
         "from jetbot_rt.hal.motors import MotorHatDrive\n"
-        "from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator\n"
+        "from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator\n"
         "chip = PCA9685Emulator(0x60)\n"
         "MotorHatDrive(I2CBus(chip, 1), 0x60, 1600.0, 1, 2).write(1.0, 0.0)\n"
         "print(chip.channel(9).duty)\n"

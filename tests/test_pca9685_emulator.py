@@ -11,14 +11,8 @@ import time
 import pytest
 from smbus2 import i2c_msg
 
-from jetbot_rt.hal.pca9685_emulator import (
-    ALL_LED_OFF_H,
-    ALL_LED_ON_L,
-    LED0_ON_L,
-    MODE1,
-    PRE_SCALE,
-    PCA9685Emulator,
-)
+from jetbot_rt.hal.pca9685 import ALL_LED_OFF_H, ALL_LED_ON_L, LED0_ON_L, MODE1, PRE_SCALE
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 ADDR = 0x60
 
@@ -145,7 +139,7 @@ def test_two_instances_share_one_chip_through_the_state_file(tmp_path) -> None:
 WRITER = """
 import sys
 from smbus2 import i2c_msg
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 chip = PCA9685Emulator(0x60, state_file=sys.argv[1])
 chip.i2c_rdwr(i2c_msg.write(0x60, bytes((0x00, 0x20))))
 print("ready", flush=True)

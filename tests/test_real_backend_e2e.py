@@ -14,8 +14,7 @@ from pathlib import Path
 import policy_models
 import pytest
 
-from jetbot_rt.hal.i2c import EMULATOR_ENV
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 MU = (1.0, -0.5)  # with max_speed 0.1: left forward 0.1, right reverse 0.05
 STEP = 1 / 4096
@@ -29,8 +28,8 @@ class Robot:
         self.config.write_text(f'[camera]\nsource = "{source}"\nstart_timeout = 5\n'
                                "[motors]\ni2c_retries = 1\n")
         self.telemetry = root / "telemetry.jsonl"
-        self.env = dict(os.environ, **{EMULATOR_ENV: str(root / "chip.json"),
-                                       "JETBOT_RT_RUNTIME_DIR": str(root / "run")})
+        self.env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(root / "run"))
+        self.board = ["--board-emulator", str(root / "chip.json")]
         self.chip = PCA9685Emulator(0x60, state_file=root / "chip.json")
         self.process: subprocess.Popen[str] | None = None
 
@@ -38,7 +37,7 @@ class Robot:
         self.process = subprocess.Popen(
             [sys.executable, "-m", "jetbot_rt.cli", "run", "--backend", "real",
              "--policy", str(self.policy), "--config", str(self.config),
-             "--telemetry", str(self.telemetry), "--duration", str(duration)],
+             "--telemetry", str(self.telemetry), "--duration", str(duration), *self.board],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=self.env,
         )
 
@@ -101,8 +100,8 @@ def test_jetbot_rt_stop_latches_the_running_runtime(robot) -> None:
     robot.start()
     robot.wait_for_ticks(15)
     assert_driving_forward_left_reverse_right(robot.chip)
-    stop = subprocess.run([sys.executable, "-m", "jetbot_rt.cli", "stop"], capture_output=True,
-                          text=True, timeout=30, env=robot.env)
+    stop = subprocess.run([sys.executable, "-m", "jetbot_rt.cli", "stop", *robot.board],
+                          capture_output=True, text=True, timeout=30, env=robot.env)
     assert stop.returncode == 0, stop.stderr
     assert "latched its safe stop" in stop.stdout
     assert robot.chip.refresh().all_off()
@@ -136,8 +135,8 @@ def test_an_i2c_fault_while_driving_is_a_safe_stop_then_stop_clears_the_board(ro
     assert "I2C bus 1 address 0x60" in event["reason"]
     assert not robot.chip.refresh().all_off()  # the chip kept its last duties
     robot.chip.update(absent=False)  # cable back; what systemd's ExecStopPost runs:
-    stop = subprocess.run([sys.executable, "-m", "jetbot_rt.cli", "stop"], capture_output=True,
-                          text=True, timeout=30, env=robot.env)
+    stop = subprocess.run([sys.executable, "-m", "jetbot_rt.cli", "stop", *robot.board],
+                          capture_output=True, text=True, timeout=30, env=robot.env)
     assert stop.returncode == 0, stop.stderr
     assert robot.chip.refresh().all_off()
 

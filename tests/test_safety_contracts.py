@@ -12,8 +12,8 @@ import pytest
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 LIVENESS_S = 10.0
 """How long a test waits for something that must happen (never asserted as a duration)."""

@@ -15,9 +15,9 @@ import pytest
 
 from jetbot_rt.control import ControlServer, default_socket_path, request_stop
 from jetbot_rt.errors import UsageError
-from jetbot_rt.hal.i2c import EMULATOR_ENV, I2CBus
+from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 # ---- control channel ---------------------------------------------------------------------
 
@@ -115,10 +115,10 @@ def test_default_socket_path_precedence(monkeypatch) -> None:
 
 
 def stop_command(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ, **{EMULATOR_ENV: str(tmp_path / "chip.json"),
-                              "JETBOT_RT_RUNTIME_DIR": str(tmp_path / "run")})
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
     return subprocess.run(
-        [sys.executable, "-m", "jetbot_rt.cli", "stop", *args],
+        [sys.executable, "-m", "jetbot_rt.cli", "stop", "--board-emulator",
+         str(tmp_path / "chip.json"), *args],
         capture_output=True, text=True, timeout=30, env=env,
     )
 
@@ -163,15 +163,14 @@ def test_stop_loads_no_camera_policy_or_torch(tmp_path) -> None:
     code = (
         "import sys\n"
         "from jetbot_rt.cli import main\n"
-        "assert main(['stop']) == 0\n"
+        "assert main(['stop', '--board-emulator', sys.argv[1]]) == 0\n"
         "heavy = {'torch', 'onnxruntime', 'cv2', 'pybullet', 'jetbot_rt.hal.gst_camera',\n"
         "         'jetbot_rt.policy', 'adafruit_motorkit'}\n"
         "print(sorted(heavy & set(sys.modules)))\n"
     )
-    env = dict(os.environ, **{EMULATOR_ENV: str(tmp_path / "chip.json"),
-                              "JETBOT_RT_RUNTIME_DIR": str(tmp_path / "run")})
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            timeout=30, env=env)
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
+    result = subprocess.run([sys.executable, "-c", code, str(tmp_path / "chip.json")],
+                            capture_output=True, text=True, timeout=30, env=env)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "[]"
 
@@ -216,8 +215,7 @@ class TestStopNeverReportsAnOffItCouldNotWrite:
     def stop_without_emulator(tmp_path: Path, config: str) -> subprocess.CompletedProcess[str]:
         path = tmp_path / "robot.toml"
         path.write_text(config)
-        env = {k: v for k, v in os.environ.items() if k != EMULATOR_ENV}
-        env["JETBOT_RT_RUNTIME_DIR"] = str(tmp_path / "run")
+        env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
         return subprocess.run(
             [sys.executable, "-m", "jetbot_rt.cli", "stop", "--config", str(path)],
             capture_output=True, text=True, timeout=30, env=env,
@@ -241,6 +239,16 @@ class TestStopNeverReportsAnOffItCouldNotWrite:
         assert "using the default bus and address" in result.stderr
         assert "motors NOT confirmed off (I2C bus 1 address 0x60)" in result.stderr
         assert "Traceback" not in result.stderr
+
+    def test_the_old_environment_variable_chooses_no_emulator(self, tmp_path: Path,
+                                                              monkeypatch) -> None:
+        """Issue 12: a stray ``JETBOT_RT_I2C_EMULATOR`` (which once swapped the board for the
+        emulator, in production too) is ignored: the stop goes to the configured bus."""
+        monkeypatch.setenv("JETBOT_RT_I2C_EMULATOR", str(tmp_path / "chip.json"))
+        result = self.stop_without_emulator(tmp_path, "[motors]\ni2c_bus = 7\n")
+        assert result.returncode == 1, result.stdout + result.stderr
+        assert "/dev/i2c-7" in result.stderr and "EMULATOR" not in result.stdout
+        assert not (tmp_path / "chip.json").exists()
 
     def test_a_bus_that_fails_every_transfer(self, tmp_path: Path) -> None:
         chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")

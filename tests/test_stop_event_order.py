@@ -23,9 +23,8 @@ import pytest
 
 from jetbot_rt import runtime as runtime_module
 from jetbot_rt.control import request_stop
-from jetbot_rt.hal.i2c import EMULATOR_ENV
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
 from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 pytestmark = pytest.mark.skipif(shutil.which("gst-launch-1.0") is None,
                                 reason="needs gst-launch-1.0")
@@ -58,7 +57,6 @@ def signals_restored() -> Iterator[None]:
 def run_in_process(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, duration: float,
                    during: Any = None) -> tuple[int, list[dict]]:
     chip_file = tmp_path / "chip.json"
-    monkeypatch.setenv(EMULATOR_ENV, str(chip_file))
     policy = policy_models.constant(tmp_path / "policy.onnx", (1.0, -0.5))
     config = tmp_path / "robot.toml"
     config.write_text('[camera]\nsource = "gst:videotestsrc is-live=true"\nstart_timeout = 10\n'
@@ -66,7 +64,8 @@ def run_in_process(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, duration: fl
     parser = argparse.ArgumentParser()
     runtime_module.add_arguments(parser)
     args = parser.parse_args(["--backend", "real", "--policy", str(policy),
-                              "--config", str(config), "--duration", str(duration)])
+                              "--config", str(config), "--duration", str(duration),
+                              "--board-emulator", str(chip_file)])
     runtime = runtime_module.Runtime(args)
     path = tmp_path / "t.jsonl"
     runtime.telemetry = BoardWatchingTelemetry(path, chip_file)

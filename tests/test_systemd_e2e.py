@@ -26,7 +26,7 @@ from pathlib import Path
 import policy_models
 import pytest
 
-from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 JETBOT_RT = str(Path(sysconfig.get_path("scripts")) / "jetbot-rt")
 RUN_TIMEOUT = 90  # seconds; a generous bound for a run of a few simulated seconds
@@ -179,10 +179,9 @@ def test_stop_after_sigkill_turns_the_emulated_board_off(tmp_path: Path):
     board_file = tmp_path / "pca9685.json"
     listener = path_listener(tmp_path)
     env = service_env(listener, 1_000_000, tmp_path / "run")
-    env["JETBOT_RT_I2C_EMULATOR"] = str(board_file)
     runtime = subprocess.Popen(
         [JETBOT_RT, "run", "--backend", "real", "--policy", str(policy),
-         "--config", str(config), "--duration", "60"],
+         "--config", str(config), "--duration", "60", "--board-emulator", str(board_file)],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         start_new_session=True,  # its own process group, like the unit's cgroup
     )
@@ -204,7 +203,8 @@ def test_stop_after_sigkill_turns_the_emulated_board_off(tmp_path: Path):
     assert not board.all_off(), f"the killed runtime left the motors driving: {board.duties()}"
 
     # ExecStopPost: same environment as the unit's ExecStart, the stale control socket left.
-    result = jetbot_rt("stop", "--config", str(config), env=env)
+    result = jetbot_rt("stop", "--config", str(config), "--board-emulator", str(board_file),
+                       env=env)
     assert result.returncode == 0, result.stdout + result.stderr
     board = PCA9685Emulator(state_file=board_file).refresh()
     assert board.all_off(), board.duties()

@@ -5,35 +5,60 @@ Every transaction is retried a bounded number of times on ``OSError`` (a motor's
 noise can make one transfer fail); one that keeps failing becomes an ``I2CFault`` naming the
 bus and address, which the runtime turns into a safe stop.
 
-``JETBOT_RT_I2C_EMULATOR=<state file>`` replaces the device with the register-level PCA9685
-emulator sharing its registers through that file: for tests and dry runs only.
+A bus opened with ``emulator=<state file>`` (``--board-emulator``, ``[motors] emulator``) is
+the register-level PCA9685 emulator of ``jetbot_rt.testing`` sharing its registers through that
+file, for tests and dry runs only: chosen explicitly, never by the environment, and announced
+by every command that uses it (``emulator_notice``: run's stdout and ``start`` event, check's
+motor row, stop's stdout; never stderr, whose one line is a refusal's).
 """
 
 from __future__ import annotations
 
-import os
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from jetbot_rt.errors import Fault, UsageError
 
-EMULATOR_ENV = "JETBOT_RT_I2C_EMULATOR"
+if TYPE_CHECKING:
+    import argparse
+
+    from jetbot_rt.config import MotorsConfig
+
 RETRY_DELAY_S = 0.001
+EMULATOR_FLAG = "--board-emulator"
 
 
 class I2CFault(Fault):
     """An I2C transaction that kept failing after its retries."""
 
 
-def open_smbus(bus_number: int, emulated_address: int = 0x60) -> Any:
-    """``smbus2.SMBus(bus_number)``, or the PCA9685 emulator when ``$JETBOT_RT_I2C_EMULATOR``
-    is set. Raises ``UsageError`` when the device node cannot be opened."""
-    state_file = os.environ.get(EMULATOR_ENV)
-    if state_file:
-        from jetbot_rt.hal.pca9685_emulator import PCA9685Emulator
+def add_emulator_argument(parser: argparse.ArgumentParser) -> None:
+    """``--board-emulator STATE_FILE``, the same for run, check and stop."""
+    parser.add_argument(
+        EMULATOR_FLAG, metavar="STATE_FILE", dest="board_emulator",
+        help="tests and dry runs: the register-level PCA9685 emulator whose registers live in "
+             "STATE_FILE stands in for the motor board (overrides [motors] emulator)",
+    )
 
-        return PCA9685Emulator(address=emulated_address, state_file=state_file)
+
+def emulator_notice(state_file: str) -> str:
+    """What a command says when its motor board is the emulator: no hardware is driven."""
+    return f"the motor board is the PCA9685 EMULATOR in {state_file}, not I2C hardware"
+
+
+def open_smbus(bus_number: int, emulated_address: int = 0x60, emulator: str | None = None
+               ) -> Any:
+    """``smbus2.SMBus(bus_number)``, or the PCA9685 emulator whose registers live in the file
+    ``emulator``. Raises ``UsageError`` when the device node (or that file) cannot be opened."""
+    if emulator:
+        from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
+
+        try:
+            return PCA9685Emulator(address=emulated_address, state_file=emulator)
+        except OSError as exc:
+            raise UsageError(f"cannot open the PCA9685 emulator's state file {emulator}: "
+                             f"{exc.strerror or exc}") from None
     try:
         from smbus2 import SMBus
     except ImportError:
@@ -70,8 +95,14 @@ class I2CBus:
         """The ``BoardLock`` of a bus opened to drive (``open_drive``); released by deinit."""
 
     @classmethod
-    def open(cls, bus_number: int, retries: int = 3, emulated_address: int = 0x60) -> I2CBus:
-        return cls(open_smbus(bus_number, emulated_address), bus_number, retries)
+    def open(cls, bus_number: int, retries: int = 3, emulated_address: int = 0x60,
+             emulator: str | None = None) -> I2CBus:
+        return cls(open_smbus(bus_number, emulated_address, emulator), bus_number, retries)
+
+    @classmethod
+    def for_motors(cls, motors: MotorsConfig) -> I2CBus:
+        """The bus ``[motors]`` names: ``i2c_bus`` with ``i2c_retries``, or its emulator."""
+        return cls.open(motors.i2c_bus, motors.i2c_retries, motors.address, motors.emulator)
 
     # ---- locking (busio.I2C) -----------------------------------------------------------
 

@@ -29,20 +29,22 @@ from jetbot_rt.actions import finite_pair
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.hal.base import Drive
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
+from jetbot_rt.hal.pca9685 import (
+    ALL_LED_OFF_H,
+    FULL_BIT,
+    LED0_ON_L,
+    MODE1,
+    MODE1_AI,
+    MODE1_SLEEP,
+    MODE2,
+    MODE2_OUTDRV,
+    OSCILLATOR_HZ,
+    PRE_SCALE,
+)
 
 if TYPE_CHECKING:
     from jetbot_rt.config import MotorsConfig
 
-MODE1 = 0x00
-MODE2 = 0x01
-LED0_ON_L = 0x06
-ALL_LED_OFF_H = 0xFD
-PRE_SCALE = 0xFE
-MODE1_AI = 0x20
-MODE1_SLEEP = 0x10
-MODE2_OUTDRV = 0x04
-FULL_BIT = 0x10
-OSCILLATOR_HZ = 25_000_000
 
 HARDWARE_STOP = bytes((ALL_LED_OFF_H, FULL_BIT))
 SLEEP = bytes((MODE1, MODE1_SLEEP | MODE1_AI))
@@ -221,9 +223,9 @@ def open_drive(motors: MotorsConfig) -> Drive:
     """
     from jetbot_rt.hal.ownership import BoardLock
 
-    owner = BoardLock.acquire(motors.i2c_bus)  # before the first write: one owner per bus
+    owner = BoardLock.acquire(motors.i2c_bus, motors.emulator)  # before the first write
     try:
-        bus = I2CBus.open(motors.i2c_bus, motors.i2c_retries, emulated_address=motors.address)
+        bus = I2CBus.for_motors(motors)
     except BaseException:
         owner.release()
         raise

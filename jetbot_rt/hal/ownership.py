@@ -21,13 +21,10 @@ from jetbot_rt.errors import UsageError
 _held: dict[str, BoardLock] = {}
 
 
-def bus_device(bus_number: int) -> Path:
+def bus_device(bus_number: int, emulator: str | None = None) -> Path:
     """What the owner locks: the bus's device node, or the emulator's ``.owner`` file."""
-    from jetbot_rt.hal.i2c import EMULATOR_ENV
-
-    state_file = os.environ.get(EMULATOR_ENV)
-    if state_file:
-        return Path(state_file + ".owner")
+    if emulator:
+        return Path(emulator + ".owner")
     return Path(f"/dev/i2c-{bus_number}")
 
 
@@ -103,10 +100,11 @@ class BoardLock:
         self._users = 1
 
     @classmethod
-    def acquire(cls, bus_number: int) -> BoardLock:
-        """Own bus ``bus_number`` or raise ``UsageError`` naming the owner. Re-entrant within
-        a process (``check --spin`` owns the bus before it opens the drive)."""
-        path = bus_device(bus_number)
+    def acquire(cls, bus_number: int, emulator: str | None = None) -> BoardLock:
+        """Own bus ``bus_number`` (or the emulator in the file ``emulator``) or raise
+        ``UsageError`` naming the owner. Re-entrant within a process (``check --spin`` owns
+        the bus before it opens the drive)."""
+        path = bus_device(bus_number, emulator)
         held = _held.get(str(path))
         if held is not None and held._fd is not None:
             held._users += 1

@@ -15,8 +15,9 @@ stop that put the chip to sleep before turning the outputs off would leave them 
 With ``state_file`` the registers live in a JSON file shared by every process that opens it:
 each transaction takes an ``flock`` on ``<state_file>.lock``, loads, applies and writes the
 state back with an atomic replace, so a writer killed by SIGKILL leaves either the old or the
-new state, never half of one. ``JETBOT_RT_I2C_EMULATOR=<state file>`` makes
-``jetbot_rt.hal.i2c`` open this instead of ``/dev/i2c-N``: tests and dry runs only.
+new state, never half of one. ``--board-emulator <state file>`` (or ``[motors] emulator``)
+makes ``jetbot_rt.hal.i2c`` open this instead of ``/dev/i2c-N``: tests and dry runs only, and
+announced (docs/HARDWARE.md). The register map is ``jetbot_rt.hal.pca9685``, the drivers' own.
 
 Fault injection (also through the file, so it reaches another process): ``fail_next`` makes
 the next N transactions raise ``OSError(EREMOTEIO)``; ``absent`` makes the chip not answer.
@@ -38,22 +39,22 @@ from typing import Any
 from smbus2 import i2c_msg
 from smbus2.smbus2 import I2C_M_RD
 
-MODE1 = 0x00
-MODE2 = 0x01
-LED0_ON_L = 0x06
-LAST_LED_REGISTER = 0x45  # LED15_OFF_H
-ALL_LED_ON_L = 0xFA
-ALL_LED_OFF_H = 0xFD
-PRE_SCALE = 0xFE
-
-MODE1_RESTART = 0x80
-MODE1_AI = 0x20
-MODE1_SLEEP = 0x10
-MODE1_ALLCALL = 0x01
-FULL_BIT = 0x10  # bit 4 of LEDn_ON_H (full on) and of LEDn_OFF_H (full off)
-
-OSCILLATOR_HZ = 25_000_000
-CHANNELS = 16
+from jetbot_rt.hal.pca9685 import (
+    ALL_LED_OFF_H,
+    ALL_LED_ON_L,
+    CHANNELS,
+    FULL_BIT,
+    LAST_LED_REGISTER,
+    LED0_ON_L,
+    MODE1,
+    MODE1_AI,
+    MODE1_ALLCALL,
+    MODE1_RESTART,
+    MODE1_SLEEP,
+    MODE2,
+    OSCILLATOR_HZ,
+    PRE_SCALE,
+)
 
 
 def power_on_registers() -> list[int]:
