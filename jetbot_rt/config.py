@@ -2,20 +2,25 @@
 
 Every key is declared here with its type and its valid range; an unknown section or key, a
 wrong type or an out-of-range value raises ``UsageError`` naming the key (``[loop] rate_hz``).
+A key's type is its annotation, read with ``typing.get_type_hints``; its range or choices are
+the field's metadata (``_check``). The annotations are written ``Optional[...]`` and
+``List[...]``, not ``X | None`` and ``list[...]``: the robot's Python 3.8 evaluates them here.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import shlex
 import stat
 import sys
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, List, Optional, Union
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -80,11 +85,11 @@ def _pair(predicate: Callable[[float], bool], expected: str) -> dict[str, Any]:
 class LoopConfig:
     rate_hz: float = field(default=30.0, metadata=_within(1.0, 100.0, " Hz"))
     """Control rate; ticks sit on absolute monotonic deadlines 1/rate_hz apart."""
-    max_frame_age: float | None = field(default=None, metadata=_within(0.005, 10.0, " s"))
+    max_frame_age: Optional[float] = field(default=None, metadata=_within(0.005, 10.0, " s"))
     """Seconds; a frame older than this at the start of a tick is refused (a fault).
     Default: 0.15 s, or 1.5 frame intervals where frames come slower (1.5 periods: the sim
     renders once per tick; 1.5 / [camera] fps: the camera); at least that if set."""
-    watchdog_timeout: float | None = field(default=None, metadata=_within(0.01, 10.0, " s"))
+    watchdog_timeout: Optional[float] = field(default=None, metadata=_within(0.01, 10.0, " s"))
     """Seconds without a completed tick before the watchdog latches the safe stop.
     Default: three periods, at least 0.1 s; at least two periods if set."""
     warmup_timeout: float = field(default=300.0, metadata=_within(0.1, 3600.0, " s"))
@@ -106,36 +111,36 @@ class LoopConfig:
 
 @dataclass
 class PolicyConfig:
-    path: str | None = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    path: Optional[str] = field(default=None, metadata=_check(bool, "a file name, not empty"))
     """ONNX file; default (key absent): the policy bundled in the package."""
-    layout: str | None = field(default=None, metadata=_one_of(LAYOUTS))
+    layout: Optional[str] = field(default=None, metadata=_one_of(LAYOUTS))
     """Override the input layout read from the model."""
-    color_order: str | None = field(default=None, metadata=_one_of(COLOR_ORDERS))
+    color_order: Optional[str] = field(default=None, metadata=_one_of(COLOR_ORDERS))
     """Override the channel order the model expects (metadata, else RGB)."""
-    pixel_range: str | None = field(default=None, metadata=_one_of(PIXEL_RANGES))
+    pixel_range: Optional[str] = field(default=None, metadata=_one_of(PIXEL_RANGES))
     """Override the pixel range the model expects (metadata, else 0-255)."""
-    clip: float | None = field(default=None, metadata=_within(0.001, 1e6))
+    clip: Optional[float] = field(default=None, metadata=_within(0.001, 1e6))
     """Clip the input values to [-clip, clip] after scaling to pixel_range, as training did:
     rl_games' clip_observations (Isaac Lab's clip_obs, 5.0) clips raw 0..255 pixels to 0..5."""
     threads: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 64, "1..64"))
     """onnxruntime CPU threads. One keeps a tick from waiting on a worker thread that the
     scheduler has not woken yet; raise it for a large model on the CPU."""
-    providers: list[str] | None = None
+    providers: Optional[List[str]] = None
     """onnxruntime execution providers in order; default TensorRT, CUDA, CPU (those present)."""
 
 
 @dataclass
 class ActionsConfig:
-    max_speed: float | None = field(
+    max_speed: Optional[float] = field(
         default=None, metadata=_check(lambda v: 0 < v <= 1, "a number in (0, 1]")
     )
     """Duty at |mu| = 1. Default: the model's metadata, else 0.1."""
-    trim: list[float] = field(
+    trim: List[float] = field(
         default_factory=lambda: [1.0, 1.0],
         metadata=_pair(lambda x: 0 <= x <= 2, "two numbers in [0, 2]"),
     )
     """[left, right] gain per wheel, to even out a weaker motor."""
-    sign: list[int] = field(
+    sign: List[int] = field(
         default_factory=lambda: [1, 1],
         metadata=_pair(lambda x: x in (1, -1), "two values, each 1 or -1"),
     )
@@ -156,7 +161,7 @@ class MotorsConfig:
     """MotorKit's default; the chip's prescaler tops out at about 1526 Hz and takes the nearest."""
     i2c_retries: int = field(default=3, metadata=_check(lambda v: 0 <= v <= 20, "0..20"))
     """Extra attempts after a transient I2C OSError before it counts as a fault."""
-    emulator: str | None = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    emulator: Optional[str] = field(default=None, metadata=_check(bool, "a file name, not empty"))
     """Tests and dry runs only: the register-level PCA9685 emulator whose registers live in
     this file stands in for the board on ``i2c_bus`` (``jetbot_rt.testing``; every command
     says so on stdout, ``run`` in its ``start`` event too). ``--board-emulator`` overrides."""
@@ -179,14 +184,14 @@ class CameraConfig:
 
 @dataclass
 class TelemetryConfig:
-    path: str | None = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    path: Optional[str] = field(default=None, metadata=_check(bool, "a file name, not empty"))
     """JSON Lines file, one record per tick plus events; none by default. A run that starts
     moves the previous file to ``<path>.1``; a start refused before that only appends."""
 
 
 @dataclass
 class RecordConfig:
-    path: str | None = None
+    path: Optional[str] = None
     """Directory to record every tick's frame and record into (docs/RECORDING.md); none by
     default. It must not exist or be empty; ``{time}`` becomes the start time (UTC), so that
     each run of the service records into a directory of its own."""
@@ -216,7 +221,7 @@ class SimConfig:
     factor squared times the render cost (docs/SIM.md, "The render-size seam")."""
     seed: int = 0
     """Seeds the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
-    wheel_gain: list[float] = field(
+    wheel_gain: List[float] = field(
         default_factory=lambda: [1.0, 1.0],
         metadata=_pair(lambda x: 0 < x <= 2, "two numbers in (0, 2]"),
     )
@@ -231,7 +236,7 @@ class SimConfig:
         default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1 s")
     )
     """Seconds from the world's state to the frame that shows it (whole physics sub-steps)."""
-    stall_torque: float | None = field(default=None, metadata=_within(1e-6, 1e6))
+    stall_torque: Optional[float] = field(default=None, metadata=_within(1e-6, 1e6))
     """N m per wheel at duty 1 and standstill: torque then scales with duty and falls with
     speed, as a PWM-driven DC motor's. Default: the ideal motor, 0.15 N m at any duty."""
     camera_pitch_deg: float = field(
@@ -246,13 +251,13 @@ class SimConfig:
         default=52.0, metadata=_check(lambda v: 10 <= v <= 150, "10..150 degrees")
     )
     """Vertical field of view of the (pinhole) camera image."""
-    floor_color: list[float] = field(
+    floor_color: List[float] = field(
         default_factory=lambda: [0.69, 0.667, 0.627], metadata=_rgb()
     )
     """The floor's light tiles; dark tiles are this times 0.636."""
     floor_texture: str = field(default="checker", metadata=_one_of(FLOOR_TEXTURES))
     """"checker" (0.25 m tiles) or "plain" (every tile floor_color)."""
-    wall_color: list[float] | None = field(
+    wall_color: Optional[List[float]] = field(
         default=None,
         metadata=_check(
             lambda v: len(v) in (3, 12) and all(0 <= x <= 1 for x in v),
@@ -261,9 +266,9 @@ class SimConfig:
     )
     """[r, g, b]: all four walls this colour; 12 numbers: the walls at +x, -x, +y, -y in
     turn. Default: one colour each (blue +x, green -x, sand +y, lavender -y)."""
-    block_color: list[float] = field(default_factory=lambda: [0.9, 0.05, 0.05], metadata=_rgb())
+    block_color: List[float] = field(default_factory=lambda: [0.9, 0.05, 0.05], metadata=_rgb())
     """The goal block."""
-    light_direction: list[float] = field(
+    light_direction: List[float] = field(
         default_factory=lambda: [-50.0, 30.0, 100.0],
         metadata=_check(
             lambda v: len(v) == 3 and all(math.isfinite(x) for x in v) and any(v),
@@ -285,9 +290,9 @@ class SimConfig:
     """Added to every pixel, as a fraction of full scale."""
     image_contrast: float = field(default=1.0, metadata=_check(lambda v: 0 <= v <= 3, "0..3"))
     """Scales each pixel's distance from mid-grey."""
-    camera_stall_after: float | None = field(default=None, metadata=_within(0.001, 1e6, " s"))
+    camera_stall_after: Optional[float] = field(default=None, metadata=_within(0.001, 1e6, " s"))
     """Fault injection: the camera delivers no new frame after this many simulated seconds."""
-    blackout: list[float] | None = field(
+    blackout: Optional[List[float]] = field(
         default=None,
         metadata=_check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] seconds"),
     )
@@ -299,54 +304,54 @@ class RandomizeConfig:
     """Per-episode ranges for the [sim] knobs (docs/SIM.md, "Domain randomization"). A
     "factor" range multiplies the [sim] value; the others are the value itself."""
 
-    enabled: bool | None = None
+    enabled: Optional[bool] = None
     """On or off for every env and for `jetbot-rt run` (one draw from [sim] seed);
     default: the task decides (forward: off), and `jetbot-rt run` is off."""
-    wheel_gain: list[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0.1, 2))
+    wheel_gain: List[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0.1, 2))
     """Factor, drawn for each wheel apart."""
-    motor_gain: list[float] = field(default_factory=lambda: [0.9, 1.1], metadata=_range(0.1, 3))
+    motor_gain: List[float] = field(default_factory=lambda: [0.9, 1.1], metadata=_range(0.1, 3))
     """Factor on both wheels' speed (battery voltage, wheel size)."""
-    deadband: list[float] = field(default_factory=lambda: [0.0, 0.3], metadata=_range(0, 0.99))
+    deadband: List[float] = field(default_factory=lambda: [0.0, 0.3], metadata=_range(0, 0.99))
     """A task trains only with a max_speed above the top of this range."""
-    latency: list[float] = field(default_factory=lambda: [0.0, 0.1], metadata=_range(0, 1, " s"))
-    camera_latency: list[float] = field(
+    latency: List[float] = field(default_factory=lambda: [0.0, 0.1], metadata=_range(0, 1, " s"))
+    camera_latency: List[float] = field(
         default_factory=lambda: [0.0, 0.1], metadata=_range(0, 1, " s")
     )
-    stall_torque: list[float] | None = field(
+    stall_torque: Optional[List[float]] = field(
         default_factory=lambda: [0.05, 0.1], metadata=_range(0.001, 10, " N m")
     )
     """N m; none keeps [sim] stall_torque."""
-    camera_pitch_deg: list[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0, 3))
+    camera_pitch_deg: List[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0, 3))
     """Factor (duckietown: camera angle 0.8..1.2)."""
-    camera_height: list[float] = field(
+    camera_height: List[float] = field(
         default_factory=lambda: [0.92, 1.08], metadata=_range(0.35, 4.3)
     )
     """Factor (duckietown: 0.92..1.08)."""
-    camera_vfov_deg: list[float] = field(
+    camera_vfov_deg: List[float] = field(
         default_factory=lambda: [0.8, 1.2], metadata=_range(0.2, 2.8)
     )
     """Factor (duckietown: camera_fov_y 0.8..1.2)."""
-    floor_color: list[float] = field(default_factory=lambda: [0.6, 1.4], metadata=_range(0, 5))
+    floor_color: List[float] = field(default_factory=lambda: [0.6, 1.4], metadata=_range(0, 5))
     """Factor on all three channels (lighter or darker), then ``tint``."""
-    wall_color: list[float] = field(default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5))
+    wall_color: List[float] = field(default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5))
     """Factor on all three channels of each wall apart, then ``tint``."""
-    block_color: list[float] = field(default_factory=lambda: [0.8, 1.1], metadata=_range(0, 5))
+    block_color: List[float] = field(default_factory=lambda: [0.8, 1.1], metadata=_range(0, 5))
     """Factor on all three channels, then ``tint``."""
-    tint: list[float] = field(default_factory=lambda: [0.85, 1.15], metadata=_range(0, 5))
+    tint: List[float] = field(default_factory=lambda: [0.85, 1.15], metadata=_range(0, 5))
     """Factor on each channel of each colour apart: a shift of hue."""
-    light_elevation_deg: list[float] = field(
+    light_elevation_deg: List[float] = field(
         default_factory=lambda: [30.0, 90.0], metadata=_range(-90, 90)
     )
     """light_direction: this elevation above the floor, from any azimuth."""
-    light_intensity: list[float] = field(
+    light_intensity: List[float] = field(
         default_factory=lambda: [0.7, 1.3], metadata=_range(0, 3)
     )
-    image_noise: list[float] = field(default_factory=lambda: [0.0, 0.03], metadata=_range(0, 1))
-    image_blur: list[float] = field(default_factory=lambda: [0.0, 0.006], metadata=_range(0, 0.1))
-    image_brightness: list[float] = field(
+    image_noise: List[float] = field(default_factory=lambda: [0.0, 0.03], metadata=_range(0, 1))
+    image_blur: List[float] = field(default_factory=lambda: [0.0, 0.006], metadata=_range(0, 0.1))
+    image_brightness: List[float] = field(
         default_factory=lambda: [-0.1, 0.1], metadata=_range(-1, 1)
     )
-    image_contrast: list[float] = field(
+    image_contrast: List[float] = field(
         default_factory=lambda: [0.8, 1.2], metadata=_range(0, 3)
     )
 
@@ -408,31 +413,54 @@ class Config:
             )
 
 
-def _type_ok(value: Any, annotation: str) -> Any:
-    """Coerce a TOML value to the field's declared type, or raise TypeError."""
-    base = annotation.replace(" | None", "")
-    if base == "bool":
-        if not isinstance(value, bool):
-            raise TypeError("true or false")
-        return value
-    if base == "float":
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise TypeError("a number")
-        return float(value)
-    if base == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise TypeError("an integer")
-        return value
-    if base == "str":
-        if not isinstance(value, str):
-            raise TypeError("a string")
-        return value
-    if base.startswith("list["):
-        item = base[5:-1]
+_SCALARS: dict[Any, str] = {bool: "true or false", float: "a number", int: "an integer",
+                            str: "a string"}
+"""The types a key may have, and how an error names what was expected."""
+
+
+def _optional(hint: Any) -> tuple[Any, bool]:
+    """``Optional[X]`` -> (X, True); anything else -> (itself, False)."""
+    if typing.get_origin(hint) is Union:
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) == 1:
+            return args[0], True
+    return hint, False
+
+
+def type_name(hint: Any) -> str:
+    """``float``, ``list[float]``: a key's type as the docs and messages write it."""
+    hint, _ = _optional(hint)
+    if typing.get_origin(hint) is list:
+        return f"list[{type_name(typing.get_args(hint)[0])}]"
+    return hint.__name__
+
+
+@functools.lru_cache(maxsize=None)
+def key_types(section_class: type) -> dict[str, Any]:
+    """Each key of a section and its declared type, from ``typing.get_type_hints`` (the
+    annotations use ``Optional``/``List``, so this works on the robot's Python 3.8 too)."""
+    return typing.get_type_hints(section_class)
+
+
+def _coerce(value: Any, hint: Any) -> Any:
+    """A TOML value as the key's declared type, or ``TypeError`` saying what was expected."""
+    hint, _ = _optional(hint)
+    if typing.get_origin(hint) is list:
+        (item,) = typing.get_args(hint)
         if not isinstance(value, list):
-            raise TypeError(f"a list of {item}")
-        return [_type_ok(v, item) for v in value]
-    raise TypeError(base)  # pragma: no cover - only declared types reach here
+            raise TypeError(f"a list of {type_name(item)}")
+        return [_coerce(v, item) for v in value]
+    if hint is bool:
+        ok = isinstance(value, bool)
+    elif hint is float:  # an integer is a number too; true is not (bool is an int in Python)
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    elif hint is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, hint)
+    if not ok:
+        raise TypeError(_SCALARS[hint])
+    return float(value) if hint is float else value
 
 
 def set_value(section_obj: Any, section: str, key: str, value: Any) -> None:
@@ -441,15 +469,15 @@ def set_value(section_obj: Any, section: str, key: str, value: Any) -> None:
     if key not in fields:
         known = ", ".join(sorted(fields))
         raise UsageError(f"unknown key [{section}] {key} (known keys: {known})")
-    spec = fields[key]
-    if value is None and "None" in str(spec.type):
+    hint = key_types(type(section_obj))[key]
+    if value is None and _optional(hint)[1]:
         setattr(section_obj, key, None)
         return
     try:
-        coerced = _type_ok(value, str(spec.type))
+        coerced = _coerce(value, hint)
     except TypeError as exc:
         raise UsageError(f"[{section}] {key} must be {exc}, got {value!r}") from None
-    meta = spec.metadata
+    meta = fields[key].metadata
     try:
         ok = "check" not in meta or meta["check"](coerced)
     except ValueError as exc:  # a check that says precisely what is wrong

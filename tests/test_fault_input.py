@@ -124,8 +124,9 @@ WRONG_TYPE = {"bool": "yes", "float": "fast", "int": 1.5, "str": 7, "list[float]
 def all_keys() -> list[tuple[str, str, str]]:
     keys = []
     for section in dataclasses.fields(config_module.Config):
+        types = config_module.key_types(type(section.default_factory()))
         for key in dataclasses.fields(section.default_factory()):
-            keys.append((section.name, key.name, str(key.type).replace(" | None", "")))
+            keys.append((section.name, key.name, config_module.type_name(types[key.name])))
     return keys
 
 
