@@ -10,7 +10,6 @@ import threading
 import time
 from collections.abc import Callable
 
-from jetbot_rt.errors import Fault
 from jetbot_rt.hal.base import Drive
 
 STOP_LOCK_TIMEOUT_S = 0.05
@@ -66,7 +65,6 @@ class GuardedDrive:
         self.drive = drive
         self.latch = latch
         self._lock = threading.Lock()
-        self.last_cmd: tuple[float, float] = (0.0, 0.0)
         self.refused = 0
         self.stop_errors: list[str] = []
         latch.on_trip(lambda _reason: self.stop())
@@ -78,7 +76,6 @@ class GuardedDrive:
                 self.refused += 1
                 return False
             self.drive.write(left, right)
-            self.last_cmd = (left, right)
             return True
 
     def stop(self) -> None:
@@ -94,7 +91,6 @@ class GuardedDrive:
                 self.drive.stop()
             except Exception as exc:  # the stop must not be lost to an exception; report it
                 self.stop_errors.append(f"{type(exc).__name__}: {exc}")
-            self.last_cmd = (0.0, 0.0)
         finally:
             if locked:
                 self._lock.release()
@@ -146,7 +142,3 @@ class Watchdog:
                 return
         self.latch.trip(f"watchdog: no tick for {silence:.3f} s (timeout {self.timeout:.3f} s)")
 
-
-def raise_if_tripped(latch: SafeStopLatch) -> None:
-    if latch.tripped and latch.fault:
-        raise Fault(latch.reason or "safe stop")

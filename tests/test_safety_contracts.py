@@ -47,7 +47,6 @@ class TestLatchIsSetBeforeItsCallbacksRun:
         assert results == [False]
         assert guarded.refused == 1
         assert chip.all_off(), chip.duties()
-        assert guarded.last_cmd == (0.0, 0.0)
 
     def test_tripped_is_visible_to_every_callback(self) -> None:
         latch = SafeStopLatch()

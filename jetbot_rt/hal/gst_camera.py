@@ -116,7 +116,6 @@ class GstCamera(Camera):
         self._cancelled = threading.Event()
         self._stderr: deque[str] = deque(maxlen=40)
         self._threads: list[threading.Thread] = []
-        self.frames_received = 0
 
     # ---- Camera ------------------------------------------------------------------------
 
@@ -225,7 +224,6 @@ class GstCamera(Camera):
             image = np.frombuffer(buffer, dtype=np.uint8).reshape(self.height, self.width, 3)
             with self._lock:
                 self._frame = Frame(image, t_capture, index)
-                self.frames_received = index
             self._first_frame.set()
 
     def _read_stderr(self) -> None:

@@ -119,5 +119,3 @@ class ActorCritic(nn.Module):
         return torch.distributions.Normal(mu, log_std.exp()), value.squeeze(-1)
 
 
-def parameter_count(model: nn.Module) -> int:
-    return sum(p.numel() for p in model.parameters())
