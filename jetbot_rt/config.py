@@ -220,7 +220,11 @@ class SimConfig:
     the policy's size: closer to what the real camera's scaled frame shows, at about this
     factor squared times the render cost (docs/SIM.md, "The render-size seam")."""
     seed: int = 0
-    """Seeds the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
+    """Seeds the scene (where the task puts its blocks, as the env's ``reset(seed=...)``),
+    the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
+    task: Optional[str] = None
+    """The scene to build: a task name (``forward``, ``seek``). Default: the policy's
+    ``jetbot_rt.task`` metadata, else ``forward``."""
     wheel_gain: List[float] = field(
         default_factory=lambda: [1.0, 1.0],
         metadata=_pair(lambda x: 0 < x <= 2, "two numbers in (0, 2]"),

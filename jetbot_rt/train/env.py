@@ -59,8 +59,9 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
     Action: ``[left, right]`` in [-1, 1].
 
     ``model_max_speed`` is the policy's metadata value, used (as by the runtime) when the
-    config sets none; without either, the task's ``max_speed``. ``randomize``: draw the ``[sim]`` knobs from ``[randomize]`` at each
-    reset (default: ``[randomize] enabled``, else the task's choice); the draw is in the reset's
+    config sets none; without either, the task's ``max_speed``. ``randomize``: draw the
+    ``[sim]`` knobs from ``[randomize]`` at each reset (default: ``[randomize] enabled``,
+    else the task's choice); the draw is in the reset's
     ``info["sim_params"]``. ``reset(options={"start_noise": False})`` starts exactly at the
     task's nominal pose (the blocks are still placed from the seed),
     ``options={"robot_pose": (x, y, yaw)}`` at a given one. A task with ``early_end`` ends

@@ -1,6 +1,7 @@
 """Deterministic evaluation of an ONNX policy: the runtime's ``OnnxPolicy`` (same frame
 preparation, action output ``mu``) driving the env at the policy's input size. Episode
-``i`` starts from the scene drawn with seed ``seed + i``, so results do not depend on how episodes are spread over workers.
+``i`` starts from the scene drawn with seed ``seed + i``, so results do not depend on how
+episodes are spread over workers.
 
 Blind baselines and seam ablations (``ablate``), on the same episodes:
 
