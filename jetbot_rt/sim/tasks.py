@@ -62,6 +62,8 @@ class Task:
     moved ``max_block_shift`` or more (it cannot succeed any more)."""
     max_speed: float = 0.1
     """Duty at |mu| = 1 the task trains with (exported into the policy's metadata)."""
+    randomize: bool = False
+    """Domain randomization ([randomize] ranges) unless the env or the config says otherwise."""
 
 
 TASKS: dict[str, Task] = {
@@ -81,7 +83,7 @@ TASKS: dict[str, Task] = {
         name="seek",
         description="find the red block among green/blue ones, drive to it and stop there",
         robot_pose=(-0.9, 0.0, 0.0),
-        episode_steps=300,
+        episode_steps=450,
         success_distance=0.15,
         start_xy_noise=0.05,
         start_yaw_noise=0.3,
@@ -91,7 +93,8 @@ TASKS: dict[str, Task] = {
         stop_speed=0.01,
         max_block_shift=0.03,
         early_end=True,
-        max_speed=0.3,
+        max_speed=0.5,
+        randomize=True,
     ),
 }
 

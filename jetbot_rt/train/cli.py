@@ -22,16 +22,6 @@ TRAIN_EXTRA_MODULES = ("torch", "onnx", "gymnasium", "matplotlib", "tqdm", "pybu
 EXIT_INTERRUPTED = 130
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
-    return value
-
-
 def _task_list() -> str:
     from jetbot_rt.sim.tasks import TASKS
 
@@ -41,7 +31,7 @@ def _task_list() -> str:
 def build_parser() -> argparse.ArgumentParser:
     from jetbot_rt.sim.tasks import TASKS
     from jetbot_rt.train.evaluate import ABLATIONS
-    from jetbot_rt.train.options import add_ppo_arguments
+    from jetbot_rt.train.options import add_ppo_arguments, positive_int
 
     formatter = argparse.ArgumentDefaultsHelpFormatter
     parser = OneLineParser(prog="jetbot-train", description=plain(__doc__.splitlines()[0]),
@@ -69,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
         "disagree by 1e-4 or more.")
     export.add_argument("--checkpoint", required=True, help="checkpoint.pt from train")
     export.add_argument("--out", required=True, help="ONNX file to write")
-    export.add_argument("--opset", type=_positive_int, default=16, help="ONNX opset")
+    export.add_argument("--opset", type=positive_int, default=16, help="ONNX opset")
 
     evaluate = sub.add_parser(
         "eval", help="evaluate an ONNX policy deterministically (mu)", formatter_class=formatter,
@@ -78,8 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_task_list())
     evaluate.add_argument("--policy", help="ONNX file (default: the policy bundled for --task)")
     evaluate.add_argument("--task", default="forward", choices=tasks, help="the task")
-    evaluate.add_argument("--episodes", type=_positive_int, default=100, help="episodes")
-    evaluate.add_argument("--num-envs", type=_positive_int, default=cores,
+    evaluate.add_argument("--episodes", type=positive_int, default=100, help="episodes")
+    evaluate.add_argument("--num-envs", type=positive_int, default=cores,
                           help="worker processes (one per core)")
     evaluate.add_argument("--seed", type=int, default=10_000,
                           help="episode i uses the scene drawn with seed + i")

@@ -20,6 +20,18 @@ SKIPPED = ("task", "config", "model")
 ALIASES = {"total_timesteps": ("--timesteps",)}
 OPTIONAL_VALUE = {"ray": {"nargs": "?", "const": "local", "metavar": "ADDRESS"}}
 """Flags whose value may be left out (``--ray`` alone: Ray on this machine)."""
+SIGNED_INTS = ("seed",)
+"""Integer fields that may be zero or negative; every other one must be > 0."""
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -62,9 +74,11 @@ def _add(group: argparse._ArgumentGroup, flags: list[str], dest: str, spec: data
     elif annotation == "bool":
         kwargs["action"] = argparse.BooleanOptionalAction
     elif annotation.startswith("tuple[int"):
-        kwargs.update(type=int, nargs=len(default), metavar="N")
+        kwargs.update(type=positive_int, nargs=len(default), metavar="N")
     else:
-        kwargs["type"] = {"int": int, "float": float}.get(annotation.replace(" | None", ""), str)
+        base = annotation.replace(" | None", "")
+        integer = int if dest in SIGNED_INTS else positive_int
+        kwargs["type"] = {"int": integer, "float": float}.get(base, str)
         kwargs["metavar"] = dest.split(".")[-1].upper()
     group.add_argument(*flags, **kwargs)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import math
+import multiprocessing
 import os
 import signal
 import time
@@ -245,7 +246,8 @@ def _prepare_out(out: Path) -> None:
 def _worker_env(task: str, config: Config, shaping: Shaping, image_size: int) -> Any:
     """Built inside each worker: Ctrl-C is the learner's to handle (it saves a checkpoint
     and then closes the workers), not a traceback from every worker."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if multiprocessing.parent_process() is not None:  # AsyncVectorEnv also calls it here
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     return make_train_env(task, config, shaping, image_size=(image_size, image_size))
 
 
