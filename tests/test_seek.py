@@ -70,14 +70,26 @@ def test_registered_env_passes_check_env(env):
     assert env.task.name == "seek" and env.pipeline.max_speed == SEEK.max_speed
 
 
+@pytest.fixture(scope="module")
+def ideal():
+    """Without randomization: the success tests need the nominal motors (a randomized weak
+    motor may stall against the goal, which is a success when it did not move it)."""
+    from jetbot_rt.train.env import JetbotEnv
+
+    environment = JetbotEnv("seek", randomize=False)
+    yield environment
+    environment.close()
+
+
 def _colour_pixels(frame: np.ndarray) -> dict[str, int]:
     r, g, b = (frame[:, :, i].astype(int) for i in range(3))
-    return {"red": int(((r > 120) & (g < 70) & (b < 70)).sum()),
-            "green": int(((g > 100) & (r < 70) & (b < 80)).sum()),
-            "blue": int(((b > 120) & (r < 70) & (g < 90)).sum())}
+    return {"red": int((r - np.maximum(g, b) > 50).sum()),
+            "green": int((g - np.maximum(r, b) > 30).sum()),
+            "blue": int((b - np.maximum(r, g) > 50).sum())}
 
 
 def test_the_goal_is_in_the_first_frame_and_distractors_are_other_colours(env):
+    """With the task's randomization on (tints, light, noise) the goal stays the red one."""
     seen_distractor = False
     for seed in range(6):
         obs, info = env.reset(seed=seed)
@@ -95,14 +107,16 @@ def _reset_in_front(env, gap: float, seed: int = 0):
     return env.reset(seed=seed, options={"robot_pose": (gx - gap, gy, 0.0)})
 
 
-def test_stopped_close_to_the_goal_succeeds_and_ends_the_episode(env):
+def test_stopped_close_to_the_goal_succeeds_and_ends_the_episode(ideal):
+    env = ideal
     _reset_in_front(env, 0.13)
     _, reward, terminated, truncated, info = env.step(np.zeros(2))
     assert info["is_success"] and terminated and not truncated and reward == 1.0
     assert info["distance"] < 0.15 and info["speed"] < 0.01 and info["block_shift"] < 0.03
 
 
-def test_not_success_when_far_or_moving(env):
+def test_not_success_when_far_or_moving(ideal):
+    env = ideal
     _reset_in_front(env, 0.3)
     _, reward, terminated, _, info = env.step(np.zeros(2))
     assert not info["is_success"] and not terminated and reward == 0.0
@@ -112,7 +126,8 @@ def test_not_success_when_far_or_moving(env):
     assert not any(i["is_success"] for i in moving[2:] if i["distance"] < 0.15)
 
 
-def test_pushing_the_goal_away_fails_and_ends_the_episode(env):
+def test_pushing_the_goal_away_fails_and_ends_the_episode(ideal):
+    env = ideal
     _reset_in_front(env, 0.2)
     for _ in range(SEEK.episode_steps):
         _, reward, terminated, truncated, info = env.step(np.array([1.0, 1.0]))

@@ -113,9 +113,12 @@ class Scene:
 
 
 def horizontal_fov_deg() -> float:
-    from jetbot_rt.sim.world import CAMERA_ASPECT, CAMERA_VFOV_DEG
+    """Of the nominal camera (``[sim] camera_vfov_deg``'s default): 82 degrees."""
+    from jetbot_rt.config import SimConfig
+    from jetbot_rt.sim.camera_model import CAMERA_ASPECT
 
-    half = math.atan(CAMERA_ASPECT * math.tan(math.radians(CAMERA_VFOV_DEG) / 2))
+    vfov = SimConfig().camera_vfov_deg
+    half = math.atan(CAMERA_ASPECT * math.tan(math.radians(vfov) / 2))
     return math.degrees(2 * half)
 
 
