@@ -135,3 +135,19 @@ def test_pushing_the_goal_away_fails_and_ends_the_episode(ideal):
             break
     assert terminated and info["failed"] and not info["is_success"] and reward == 0.0
     assert info["block_shift"] >= 0.03
+
+
+def test_the_sim_backend_builds_the_policy_tasks_scene_from_the_seed():
+    from jetbot_rt.config import from_dict
+    from jetbot_rt.hal.registry import BackendOptions
+    from jetbot_rt.sim.backend import build_backend
+
+    scene = sample_scene(SEEK, np.random.default_rng(7), start_noise=False)
+    backend = build_backend(from_dict({"sim": {"seed": 7}}), BackendOptions((56, 56), task="seek"))
+    try:
+        extra = backend.state()
+        assert extra["pose"] == pytest.approx(list(SEEK.robot_pose), abs=1e-3)
+        assert extra["goal_distance"] == pytest.approx(
+            math.dist(SEEK.robot_pose[:2], scene.goal_xy), abs=2e-3)
+    finally:
+        backend.disconnect()

@@ -70,7 +70,7 @@ def test_telemetry_reports_pose_and_sim_time(backend):
     backend.camera.start()
     advance(backend, 1.0)
     extra = backend.state()
-    assert set(extra) == {"pose", "sim_time"}
+    assert set(extra) == {"pose", "sim_time", "goal_distance"}
     assert extra["sim_time"] == pytest.approx(1.0)
     assert extra["pose"] == pytest.approx([-0.6, 0.0, 0.0], abs=1e-3)
 

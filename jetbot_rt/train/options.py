@@ -20,8 +20,9 @@ SKIPPED = ("task", "config", "model")
 ALIASES = {"total_timesteps": ("--timesteps",)}
 OPTIONAL_VALUE = {"ray": {"nargs": "?", "const": "local", "metavar": "ADDRESS"}}
 """Flags whose value may be left out (``--ray`` alone: Ray on this machine)."""
-SIGNED_INTS = ("seed",)
-"""Integer fields that may be zero or negative; every other one must be > 0."""
+SIGNED_INTS = ("seed", "workers")
+"""Integer fields that may be zero or negative (checked where they are used); every other
+one must be > 0."""
 
 
 def positive_int(text: str) -> int:
