@@ -185,13 +185,13 @@ def main(argv: list[str] | None = None) -> int:
         print("jetbot-train: error: needs the train extra (missing "
               f"{', '.join(missing)}): pip install 'jetbot_rt[sim,train]'", file=sys.stderr)
         return EXIT_USAGE
-    args = build_parser().parse_args(argv)
     try:
+        args = build_parser().parse_args(argv)
         return COMMANDS[args.command](args, argv)
     except UsageError as exc:
-        print(f"jetbot-train {args.command}: error: {exc}", file=sys.stderr)
+        print(f"jetbot-train {argv[0] if argv else ''}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # before training started (or in export/eval): nothing to save
         return EXIT_INTERRUPTED
 
 
