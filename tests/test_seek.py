@@ -151,3 +151,42 @@ def test_the_sim_backend_builds_the_policy_tasks_scene_from_the_seed():
             math.dist(SEEK.robot_pose[:2], scene.goal_xy), abs=2e-3)
     finally:
         backend.disconnect()
+
+
+def test_ablations_open_the_seams_they_name(tmp_path):
+    import policy_models
+
+    from jetbot_rt.config import Config
+    from jetbot_rt.train.evaluate import BLANK_LEVEL, BlankPolicy, ConstantPolicy, load_policy
+
+    path = policy_models.constant(tmp_path / "p.onnx", (0.2, 0.4), size=56,
+                                  metadata={"jetbot_rt.task": "seek"})
+    plain = load_policy(path, Config())
+    assert (plain.spec.color_order, plain.spec.pixel_range) == ("RGB", "0-255")
+    assert load_policy(path, Config(), ablate="bgr").spec.color_order == "BGR"
+    assert load_policy(path, Config(), ablate="pixel-range").spec.pixel_range == "0-1"
+    frame = np.random.default_rng(0).integers(0, 256, (56, 56, 3), dtype=np.uint8)
+    bgr = load_policy(path, Config(), ablate="bgr").prepare(frame)
+    assert np.array_equal(bgr[0], frame[:, :, ::-1].astype(np.float32))
+    blank = load_policy(path, Config(), ablate="blank")
+    assert isinstance(blank, BlankPolicy)
+    seen = []
+    blank.policy.infer = lambda image: seen.append(image) or np.zeros(2)
+    blank.infer(frame)
+    assert np.all(seen[0] == BLANK_LEVEL) and seen[0].shape == frame.shape
+    constant = load_policy(path, Config(), ablate="constant-forward")
+    assert isinstance(constant, ConstantPolicy) and constant.infer(frame).tolist() == [1.0, 1.0]
+
+
+def test_driving_blind_straight_ahead_fails_seek(tmp_path):
+    """The task needs the camera: mu = [1, 1] on the evaluation's first episodes (seeds
+    10000.., randomization on) succeeds in at most one of six."""
+    import policy_models
+
+    from jetbot_rt.train.evaluate import evaluate
+
+    path = policy_models.constant(tmp_path / "p.onnx", (0.0, 0.0), size=56,
+                                  metadata={"jetbot_rt.task": "seek"})
+    result = evaluate(path, task="seek", episodes=6, ablate="constant-forward")
+    assert result["success_rate"] <= 1 / 6
+    assert result["mean_final_distance"] > 0.15
