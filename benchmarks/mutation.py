@@ -78,12 +78,14 @@ MODULES: dict[str, tuple[list[str], list[str]]] = {
     "jetbot_rt/hal/motors.py": (["tests/test_motors.py", "tests/test_i2c.py"],
                                 ["tests/test_stop.py", E2E_REAL, *OWNERSHIP_STOP]),
     "jetbot_rt/hal/i2c.py": (["tests/test_i2c.py", "tests/test_motors.py"], ["tests/test_stop.py"]),
-    "jetbot_rt/stop.py": (["tests/test_stop.py"],
-                          ["tests/test_fault_config_read.py", *OWNERSHIP_STOP, E2E_REAL]),
+    "jetbot_rt/commands/stop.py": (["tests/test_stop.py"],
+                                   ["tests/test_fault_config_read.py", *OWNERSHIP_STOP,
+                                    E2E_REAL]),
     # the other end-to-end systemd tests run with the default 0.1 s in-process watchdog, which
     # a loaded machine trips now and then: a false kill here
-    "jetbot_rt/notify.py": (["tests/test_notify.py"],
-                            ["tests/test_systemd_e2e.py::TestWatchdogPingsComeFromCompletedTicks"]),
+    "jetbot_rt/systemd_notify.py": (
+        ["tests/test_notify.py"],
+        ["tests/test_systemd_e2e.py::TestWatchdogPingsComeFromCompletedTicks"]),
 }
 
 
@@ -138,9 +140,9 @@ EQUIVALENT = [
                ("OSCILLATOR_HZ = 25000001", "OSCILLATOR_HZ = 24999999"),
                "1 Hz on 25 MHz changes no prescale value: checked for every 0.1 Hz from 1 Hz "
                "to 5 kHz"),
-    Equivalent("jetbot_rt/stop.py", "motors = MotorsConfig()", ("pass",),
+    Equivalent("jetbot_rt/commands/stop.py", "motors = MotorsConfig()", ("pass",),
                "_motors() already returns the default MotorsConfig with the error it reports"),
-    Equivalent("jetbot_rt/stop.py",
+    Equivalent("jetbot_rt/commands/stop.py",
                "except Exception as exc:  # the stop must go out whatever the config holds",
                (), "unreachable defence in depth: load_config turns every failure it can meet "
                "(bytes, size, nesting, TOML, FIFO, values) into UsageError "
@@ -148,7 +150,7 @@ EQUIVALENT = [
     Equivalent("jetbot_rt/loop.py", '"t": round(self.t_start - t0, 6),',
                ('"t": round(self.t_start - t0, 7),', '"t": round(self.t_start - t0, 5),'),
                "the record's t rounded to 0.1 or 10 us instead of 1 us; ticks are ms apart"),
-    Equivalent("jetbot_rt/notify.py", _PID,
+    Equivalent("jetbot_rt/systemd_notify.py", _PID,
                tuple(_PID.replace("or -1", f"or {v}") for v in ("not 1", "- 0", "- 2", "~1")),
                "an unparsable WATCHDOG_PID must name no process: -1, 0, -2 and False all do "
                "(only a positive pid can equal ours)"),
@@ -196,7 +198,7 @@ PLANTED = [
     Planted("NCHW frames fed with height and width swapped", "jetbot_rt/policy.py",
             "tensor.transpose(2, 0, 1)", "tensor.transpose(2, 1, 0)",
             ("tests/test_policy_orientation.py",)),
-    Planted("the main thread pings WATCHDOG=1", "jetbot_rt/runtime.py",
+    Planted("the main thread pings WATCHDOG=1", "jetbot_rt/commands/run.py",
             "            loop_thread.join(0.05)\n",
             "            loop_thread.join(0.05)\n"
             "            self.notifier.tick(time.monotonic(), self._status)\n",
@@ -207,7 +209,7 @@ PLANTED = [
     Planted("stop waits without limit for a hung write", "jetbot_rt/safety.py",
             "self._lock.acquire(timeout=STOP_LOCK_TIMEOUT_S)", "self._lock.acquire()",
             ("tests/test_safety_contracts.py",)),
-    Planted("safe_stop logged before the motors are zero", "jetbot_rt/runtime.py",
+    Planted("safe_stop logged before the motors are zero", "jetbot_rt/commands/run.py",
             "        self.drive = GuardedDrive(self.backend.drive, self.latch)\n"
             "        # registered after the drive's own zeroing callback: the event is logged once"
             " it is done\n        self.latch.on_trip(self._log_trip)\n",
@@ -221,7 +223,7 @@ PLANTED = [
             "remaining = self._last_kick + self.timeout - self.clock()",
             "remaining = self._last_kick + 2 * self.timeout - self.clock()",
             ("tests/test_safety_contracts.py",)),
-    Planted("stop exits 0 when the stop cannot be written", "jetbot_rt/stop.py",
+    Planted("stop exits 0 when the stop cannot be written", "jetbot_rt/commands/stop.py",
             "        return EXIT_BOARD_UNREACHABLE\n", "        return exit_code\n",
             ("tests/test_stop.py",)),
 ]

@@ -1,7 +1,8 @@
 """``jetbot-rt``: drive the JetBot (or its simulation) from an ONNX policy, with a safe stop.
 
-Each subcommand lives in its own module, imported only when used, so ``jetbot-rt stop`` (what
-systemd runs after a crash) loads neither onnxruntime nor the camera code.
+Each subcommand lives in its own module of ``jetbot_rt.commands``, imported only when used, so
+``jetbot-rt stop`` (what systemd runs after a crash) loads neither onnxruntime nor the camera
+code.
 """
 
 from __future__ import annotations
@@ -16,16 +17,16 @@ from jetbot_rt import __version__, signals
 from jetbot_rt.errors import EXIT_USAGE, UsageError
 from jetbot_rt.extras import sim_problem
 
-# subcommand -> (module with add_arguments/run, help)
+# subcommand -> (module in jetbot_rt.commands with add_arguments/run, help)
 COMMANDS = {
-    "run": ("jetbot_rt.runtime", "drive the robot (or the simulation) from an ONNX policy"),
-    "stop": ("jetbot_rt.stop", "stop a running jetbot-rt and turn the motor outputs off"),
-    "check": ("jetbot_rt.check", "self-test: motor board, camera, policy, providers"),
-    "install-service": ("jetbot_rt.service", "install the systemd unit and a default config"),
-    "replay": ("jetbot_rt.replay", "run a policy offline over a recording's frames and compare "
-               "its mu with the recorded one (no motor is touched)"),
-    "report": ("jetbot_rt.report", "look at a recording or a telemetry file: run.mp4, run.png "
-               "and the summary"),
+    "run": ("run", "drive the robot (or the simulation) from an ONNX policy"),
+    "stop": ("stop", "stop a running jetbot-rt and turn the motor outputs off"),
+    "check": ("check", "self-test: motor board, camera, policy, providers"),
+    "install-service": ("install_service", "install the systemd unit and a default config"),
+    "replay": ("replay", "run a policy offline over a recording's frames and compare its mu "
+               "with the recorded one (no motor is touched)"),
+    "report": ("report", "look at a recording or a telemetry file: run.mp4, run.png and the "
+               "summary"),
 }
 
 
@@ -65,7 +66,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
     parser.add_argument("--version", action="version", version=f"jetbot-rt {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     modules = {}
-    for name, (module_name, help_text) in COMMANDS.items():
+    for name, (module, help_text) in COMMANDS.items():
+        module_name = f"jetbot_rt.commands.{module}"
         command_parser = sub.add_parser(name, help=help_text, description=help_text)
         modules[name] = module_name
         command_parser.set_defaults(_module=module_name)

@@ -10,7 +10,7 @@ from pathlib import Path
 import policy_models
 import pytest
 
-from jetbot_rt.check import SPIN_DUTY
+from jetbot_rt.commands.check import SPIN_DUTY
 from jetbot_rt.hal.i2c import EMULATOR_FLAG
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 

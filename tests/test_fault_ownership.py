@@ -320,7 +320,7 @@ def test_two_simulations_run_side_by_side(tmp_path: Path) -> None:
 WARM_STOP = """
 import sys
 from jetbot_rt.cli import main
-import jetbot_rt.stop
+import jetbot_rt.commands.stop
 print("ready", flush=True)
 sys.stdin.readline()
 sys.exit(main(["stop", "--board-emulator", sys.argv[1]]))

@@ -150,7 +150,7 @@ def test_bad_input_is_one_line_exit_2_and_motors_never_move(tmp_path):
 
 def test_core_imports_stay_light():
     code = (
-        "import sys, jetbot_rt, jetbot_rt.policy, jetbot_rt.runtime, jetbot_rt.cli, "
+        "import sys, jetbot_rt, jetbot_rt.policy, jetbot_rt.commands.run, jetbot_rt.cli, "
         "jetbot_rt.hal, jetbot_rt.loop, jetbot_rt.safety\n"
         "heavy = [m for m in ('torch', 'pybullet', 'gymnasium') if m in sys.modules]\n"
         "print(heavy)\nsys.exit(1 if heavy else 0)\n"

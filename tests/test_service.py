@@ -13,8 +13,8 @@ from pathlib import Path, PurePosixPath
 
 import pytest
 
-from jetbot_rt import service
 from jetbot_rt.cli import main
+from jetbot_rt.commands import install_service as service
 from jetbot_rt.config import Config, load_config
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from jetbot_rt.control import ControlServer, default_socket_path, request_stop
 from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
+from jetbot_rt.stop_socket import ControlServer, default_socket_path, request_stop
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 # ---- control channel ---------------------------------------------------------------------

@@ -21,8 +21,8 @@ from typing import Any
 import policy_models
 import pytest
 
-from jetbot_rt import runtime as runtime_module
-from jetbot_rt.control import request_stop
+from jetbot_rt.commands import run as runtime_module
+from jetbot_rt.stop_socket import request_stop
 from jetbot_rt.telemetry import Telemetry
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 

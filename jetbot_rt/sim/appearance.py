@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from jetbot_rt.sim.quiet import import_pybullet
+from jetbot_rt.sim.pybullet_import import import_pybullet
 
 p = import_pybullet()
 

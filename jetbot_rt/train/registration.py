@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-ENV_IDS = {"JetbotForward-v0": "forward", "JetbotSeek-v0": "seek"}
+ENV_IDS = {"JetbotForward-v0": "forward"}
 
 
 def register_envs() -> None:

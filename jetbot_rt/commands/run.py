@@ -25,28 +25,22 @@ import numpy as np
 
 from jetbot_rt import signals
 from jetbot_rt.actions import ActionPipeline
+from jetbot_rt.commands.shutdown import Shutdown
 from jetbot_rt.config import Config, load_config, set_value
 from jetbot_rt.errors import EXIT_USAGE, Fault, UsageError, first_line
 from jetbot_rt.hal import BackendOptions, Robot, make_backend
 from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument, emulator_notice
 from jetbot_rt.hal.registry import BACKEND_MODULES
 from jetbot_rt.loop import ControlLoop, LoopStats, Safety, Schedule, TickResult
-from jetbot_rt.policy import (
-    META_PREFIX,
-    OnnxPolicy,
-    bundled_policy_path,
-    resolve_policy_path,
-    shown,
-)
+from jetbot_rt.policy import OnnxPolicy, bundled_policy_path, resolve_policy_path, shown
 from jetbot_rt.recorder import Recorder
 from jetbot_rt.recorder import open_for_run as open_recorder
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-from jetbot_rt.shutdown import Shutdown
 from jetbot_rt.telemetry import Telemetry
 
 if TYPE_CHECKING:
-    from jetbot_rt.control import ControlServer
-    from jetbot_rt.notify import Notifier
+    from jetbot_rt.stop_socket import ControlServer
+    from jetbot_rt.systemd_notify import Notifier
 
 START_POLL_S = 0.02
 """How often the main thread looks at the latch while a start-up step runs in a worker."""
@@ -233,8 +227,8 @@ class Runtime:
         """The service manager's notifier and the control socket (for ``jetbot-rt stop``; one
         per process. A second runtime on the same motor board is refused by the bus's owner
         lock, taken when the robot connects: hal/ownership.py)."""
-        from jetbot_rt.control import ControlServer
-        from jetbot_rt.notify import Notifier
+        from jetbot_rt.stop_socket import ControlServer
+        from jetbot_rt.systemd_notify import Notifier
 
         notifier = Notifier.from_env()
         self.config.validate_service_watchdog(notifier.watchdog_interval)
@@ -269,8 +263,7 @@ class Runtime:
     def connect(self, loaded: Loaded) -> Connected:
         """The robot: its motor board opened (every output off), its drive behind the latch."""
         spec = loaded.policy.spec
-        options = BackendOptions(frame_size=(spec.width, spec.height), gui=self.args.gui,
-                                 task=loaded.policy.metadata.get(META_PREFIX + "task"))
+        options = BackendOptions(frame_size=(spec.width, spec.height), gui=self.args.gui)
         robot = make_backend(self.args.backend, self.config, options)
         self.shutdown.robot(robot)
         robot.connect()

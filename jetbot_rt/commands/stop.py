@@ -32,12 +32,12 @@ import time
 from collections.abc import Callable
 
 from jetbot_rt.config import MotorsConfig, load_config
-from jetbot_rt.control import request_stop
 from jetbot_rt.errors import EXIT_USAGE, UsageError, first_line
 from jetbot_rt.hal.i2c import I2CBus, I2CFault, add_emulator_argument, emulator_notice
 from jetbot_rt.hal.motors import hardware_stop, read_mode1, stop_and_sleep
 from jetbot_rt.hal.ownership import bus_device, describe, owned, owner_pids
 from jetbot_rt.hal.pca9685 import MODE1_SLEEP
+from jetbot_rt.stop_socket import request_stop
 
 EXIT_BOARD_UNREACHABLE = 1
 CONFIRM_S = 3.0

@@ -14,9 +14,9 @@ from jetbot_rt.recorder import recording_line
 if TYPE_CHECKING:
     from jetbot_rt.hal import Robot
     from jetbot_rt.loop import LoopStats
-    from jetbot_rt.notify import Notifier
     from jetbot_rt.recorder import Recorder
     from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+    from jetbot_rt.systemd_notify import Notifier
     from jetbot_rt.telemetry import Telemetry
 
 
