@@ -46,8 +46,10 @@ def _bench(tree: Path, env: dict[str, str], args: argparse.Namespace) -> dict:
 
 def figures(result: dict) -> dict[str, float]:
     out = {}
-    for run in result["jitter"]:
+    for run, floor in zip(result["jitter"], result["sleep_baseline"], strict=True):
         out[f"jitter p99 @ {run['rate_hz']:g} Hz (ms)"] = run["start_jitter_ms"]["p99"]
+        out[f"bare sleep p99 @ {floor['rate_hz']:g} Hz, same run (ms)"] = \
+            floor["start_jitter_ms"]["p99"]
     out["overhead p50 (ms)"] = result["overhead"]["overhead_ms"]["p50"]
     out["overhead p99 (ms)"] = result["overhead"]["overhead_ms"]["p99"]
     out["watchdog stop after timeout p99 (ms)"] = \

@@ -220,7 +220,11 @@ class SimConfig:
     the policy's size: closer to what the real camera's scaled frame shows, at about this
     factor squared times the render cost (docs/SIM.md, "The render-size seam")."""
     seed: int = 0
-    """Seeds the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
+    """Seeds the scene (where the task puts its blocks, as the env's ``reset(seed=...)``),
+    the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
+    task: Optional[str] = None
+    """The scene to build: a task name (``forward``, ``seek``). Default: the policy's
+    ``jetbot_rt.task`` metadata, else ``forward``."""
     wheel_gain: List[float] = field(
         default_factory=lambda: [1.0, 1.0],
         metadata=_pair(lambda x: 0 < x <= 2, "two numbers in (0, 2]"),
@@ -487,10 +491,17 @@ def set_value(section_obj: Any, section: str, key: str, value: Any) -> None:
     setattr(section_obj, key, coerced)
 
 
+FOREIGN_SECTIONS = ("train",)
+"""Sections another command reads from the same file (``[train]``: ``jetbot-train train``);
+the runtime skips them."""
+
+
 def from_dict(data: dict[str, Any]) -> Config:
     config = Config()
     sections = {f.name for f in dataclasses.fields(config)}
     for section, values in data.items():
+        if section in FOREIGN_SECTIONS:
+            continue
         if section not in sections:
             raise UsageError(
                 f"unknown section [{section}] (known sections: {', '.join(sorted(sections))})"
@@ -545,18 +556,23 @@ def read_config_text(path: Path) -> str:
     return text[1:] if text.startswith("\ufeff") else text
 
 
-def load_config(path: str | Path | None) -> Config:
-    """Read a TOML file (or return the defaults when ``path`` is None)."""
-    if path is None:
-        return Config()
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """The TOML file as a dict (read by ``read_config_text``); bad files are a ``UsageError``."""
     path = Path(path)
     text = read_config_text(path)
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise UsageError(f"config {path} is not valid TOML: {exc}") from None
     except RecursionError:
         raise UsageError(f"config {path} is not valid TOML: nested too deeply") from None
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read a TOML file (or return the defaults when ``path`` is None)."""
+    if path is None:
+        return Config()
+    data = read_toml(path)
     try:
         return from_dict(data)
     except UsageError as exc:

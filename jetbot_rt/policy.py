@@ -66,18 +66,24 @@ def _model_source(path: Path) -> str | bytes:
     return str(path)
 
 
-def bundled_policy_path() -> Path:
-    return Path(__file__).resolve().parent / "policies" / "forward.onnx"
+DEFAULT_TASK = "forward"
+"""The task whose bundled policy ``jetbot-rt run`` drives without ``--policy``."""
 
 
-def resolve_policy_path(given: str | Path | None) -> Path:
-    """The policy a command uses: ``given`` (a flag or ``[policy] path``), else the bundled
-    one; ``UsageError`` when none is given and this installation has no bundled policy."""
+def bundled_policy_path(task: str = DEFAULT_TASK) -> Path:
+    """The policy bundled in the package for ``task`` (``policies/<task>.onnx``)."""
+    return Path(__file__).resolve().parent / "policies" / f"{task}.onnx"
+
+
+def resolve_policy_path(given: str | Path | None, task: str = DEFAULT_TASK) -> Path:
+    """The policy a command uses: ``given`` (a flag or ``[policy] path``), else the one
+    bundled for ``task``; ``UsageError`` when none is given and none is bundled."""
     if given:
         return Path(given)
-    bundled = bundled_policy_path()
+    bundled = bundled_policy_path(task)
     if not bundled.is_file():
-        raise UsageError("no bundled policy in this installation; pass --policy FILE.onnx")
+        raise UsageError(f"no bundled {task} policy in this installation; "
+                         "pass --policy FILE.onnx")
     return bundled
 
 

@@ -70,7 +70,7 @@ def test_telemetry_reports_pose_and_sim_time(backend):
     backend.camera.start()
     advance(backend, 1.0)
     extra = backend.state()
-    assert set(extra) == {"pose", "sim_time"}
+    assert set(extra) == {"pose", "sim_time", "goal_distance"}
     assert extra["sim_time"] == pytest.approx(1.0)
     assert extra["pose"] == pytest.approx([-0.6, 0.0, 0.0], abs=1e-3)
 
@@ -134,3 +134,23 @@ def test_gui_without_a_display_is_a_usage_error(monkeypatch):
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     with pytest.raises(UsageError, match="display"):
         sim_backend(options=BackendOptions(gui=True))
+
+
+def test_the_robot_lifecycle_as_a_context_manager():
+    """No drive before connect; inside ``with`` it drives and its time steps; on the way out
+    the motors are at zero and the camera is stopped; ``stats`` still answers afterwards."""
+    robot = make_backend("sim", Config(), BackendOptions(frame_size=(64, 48)))
+    with pytest.raises(RuntimeError, match="not connected"):
+        robot.drive  # noqa: B018
+    with robot:
+        robot.camera.start()
+        robot.drive.write(0.3, 0.3)
+        for _ in range(30):
+            robot.step(TICK)
+        assert robot.state()["sim_time"] == pytest.approx(1.0)
+        assert robot.camera.read().image.shape == (48, 64, 3)
+        world = robot._world
+        assert world.duty == (0.3, 0.3)
+    assert world.duty == (0.0, 0.0)
+    assert robot.camera.read() is None
+    assert robot.stats()["travelled_m"] > 0.05

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -138,10 +140,14 @@ def _one_line_exit_2(result: subprocess.CompletedProcess, needle: str) -> None:
 def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run):
     a_file = tmp_path / "plain.txt"
     a_file.write_text("not a checkpoint")
+    bad_train = tmp_path / "bad.toml"
+    bad_train.write_text("[train]\ngama = 0.9\n")
     out = tmp_path / "m.onnx"
     cases = [
         (["train", "--task", "sideways", "--timesteps", "10", "--out", str(tmp_path / "x")],
-         "unknown task 'sideways'"),
+         "invalid choice: 'sideways'"),
+        (["train", "--config", str(bad_train), "--out", str(tmp_path / "x")],
+         "unknown training option(s) gama"),
         (["train", "--timesteps", "0", "--out", str(tmp_path / "x")], "--timesteps"),
         (["train", "--timesteps", "10", "--num-envs", "-1", "--out", str(tmp_path / "x")],
          "--num-envs"),
@@ -157,9 +163,73 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run):
         (["export", "--checkpoint", str(smoke_run / "checkpoint.pt"), "--out",
           str(a_file / "m.onnx")],
          "cannot write"),
-        (["eval", "--task", "sideways", "--episodes", "1"], "unknown task"),
+        (["eval", "--task", "sideways", "--episodes", "1"], "invalid choice"),
+        (["eval", "--ablate", "sepia", "--episodes", "1"], "invalid choice"),
         (["eval", "--policy", str(a_file), "--episodes", "1"], "not a loadable ONNX model"),
         (["eval", "--episodes", "0"], "--episodes"),
     ]
     for args, needle in cases:
         _one_line_exit_2(train_cli(*args), needle)
+
+
+def test_help_lists_the_tasks_and_shows_defaults():
+    result = train_cli("--help")
+    assert result.returncode == 0
+    for name in ("forward", "seek"):
+        assert f"{name} --" in " ".join(result.stdout.split())
+    result = train_cli("train", "--help")
+    text = " ".join(result.stdout.split())
+    assert "(default 0.99)" in text and "seek: 300000" in text  # gamma, seek's timesteps
+    text = " ".join(train_cli("eval", "--help").stdout.split())
+    assert "--ablate" in text and "(default: 10000)" in text
+
+
+def test_without_the_train_extra_one_line_names_it():
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "from jetbot_rt.train.cli import main\n"
+            "sys.exit(main(['train', '--task', 'seek']))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60)
+    _one_line_exit_2(result, "pip install 'jetbot_rt[sim,train]'")
+    assert "torch" in result.stderr
+
+
+def test_ctrl_c_saves_a_checkpoint_and_prints_the_resume_command(tmp_path):
+    out = tmp_path / "run"
+    args = ["train", "--task", "seek", "--timesteps", "100000", "--num-envs", "1",
+            "--num-steps", "16", "--out", str(out), "--no-progress"]
+    # a shell's background job inherits SIGINT ignored; a user's terminal delivers it
+    proc = subprocess.Popen([JETBOT_TRAIN, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "metrics.csv").exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert (out / "metrics.csv").exists(), "no update finished"
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    resume = stderr.strip().splitlines()[-1].strip()
+    assert resume.startswith("jetbot-train train") and resume.endswith("--resume")
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert state["global_step"] >= 16 and state["task"] == "seek"
+    assert (out / "learning_curve.png").stat().st_size > 0
+    assert (out / "policy.onnx").stat().st_size > 0
+
+
+def test_init_starts_from_another_tasks_checkpoint(smoke_run, tmp_path):
+    out = tmp_path / "seek"
+    result = train_cli("train", "--task", "seek", "--timesteps", "32", "--num-envs", "1",
+                       "--num-steps", "32", "--out", str(out), "--no-progress",
+                       "--init", str(smoke_run / "checkpoint.pt"), "--update-epochs", "1",
+                       "--learning-rate", "0")
+    assert result.returncode == 0, result.stderr
+    start = torch.load(smoke_run / "checkpoint.pt", weights_only=True)["model"]
+    after = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert after["task"] == "seek" and after["global_step"] == 32
+    assert all(torch.equal(start[k], after["model"][k]) for k in start)  # lr 0: unchanged

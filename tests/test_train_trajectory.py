@@ -85,3 +85,57 @@ def test_env_and_runtime_give_the_same_trajectory(tmp_path, monkeypatch, randomi
     assert np.max(np.abs(rt_pose - env_pose)) < 1e-3
     # and it is a real trajectory: the bundled policy drives towards the block (0.06 m/s)
     assert rt_pose[-1][0] - rt_pose[0][0] > 0.03 * len(ticks) / 30
+
+
+def _seek_policy(tmp_path):
+    """The bundled seek policy; before one is bundled, a constant curve with seek metadata."""
+    import policy_models
+
+    if bundled_policy_path("seek").exists():
+        return bundled_policy_path("seek")
+    return policy_models.constant(tmp_path / "seek.onnx", (0.6, 1.0), size=56,
+                                  metadata={"jetbot_rt.task": "seek", "jetbot_rt.max_speed": "0.5"})
+
+
+def test_seek_scene_and_randomized_draw_are_the_same_in_env_and_runtime(tmp_path, monkeypatch):
+    """The runtime builds the policy's task's scene from [sim] seed and, with [randomize]
+    enabled, draws the [sim] knobs from the same generator after it: the env's
+    ``reset(seed=seed, options={"start_noise": False})``, distractors and all."""
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path))
+    policy_path = _seek_policy(tmp_path)
+    seed = 7
+    toml = ("[loop]\nwatchdog_timeout = 2.0\nmax_frame_age = 2.0\n"
+            f"[sim]\nseed = {seed}\n[randomize]\nenabled = true\n")
+    (tmp_path / "run.toml").write_text(toml)
+    result = run_cli(["run", "--backend", "sim", "--policy", str(policy_path), "--duration",
+                      str(DURATION_S), "--config", str(tmp_path / "run.toml")],
+                     telemetry=tmp_path / "t.jsonl")
+    assert result.returncode == 0, result.stderr
+    ticks = result.ticks
+    assert len(ticks) >= 30
+
+    config = from_dict({"randomize": {"enabled": True}})
+    policy = load_policy(policy_path, config, single_thread=False)
+    env = JetbotEnv("seek", config, model_max_speed=policy.max_speed,
+                    image_size=(policy.spec.width, policy.spec.height))
+    try:
+        obs, first = env.reset(seed=seed, options={"start_noise": False})
+        assert len(env.scene.distractors) >= 1 and first["sim_params"]["latency"] > 0
+        env_pose, env_goal, env_mu = [], [], []
+        for _ in ticks:
+            mu = policy.infer(obs)
+            obs, _, terminated, truncated, info = env.step(mu)
+            env_mu.append(mu)
+            env_pose.append(info["pose"])
+            env_goal.append(info["distance"])
+            if terminated or truncated:
+                break
+    finally:
+        env.close()
+    n = len(env_mu)
+    rt = ticks[:n]
+    assert np.max(np.abs(np.array([t["mu"] for t in rt]) - np.array(env_mu))) < 1e-4
+    assert np.max(np.abs(np.array([t["pose"] for t in rt]) - np.array(env_pose))) < 1e-3
+    goal = np.array([t["goal_distance"] for t in rt])
+    assert np.max(np.abs(goal - np.array(env_goal))) < 1e-3  # the same goal, the same draw
+    assert np.linalg.norm(np.array(rt[-1]["pose"][:2]) - first["pose"][:2]) > 0.05

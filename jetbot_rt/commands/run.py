@@ -32,7 +32,13 @@ from jetbot_rt.hal import BackendOptions, Robot, make_backend
 from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument, emulator_notice
 from jetbot_rt.hal.registry import BACKEND_MODULES
 from jetbot_rt.loop import ControlLoop, LoopStats, Safety, Schedule, TickResult
-from jetbot_rt.policy import OnnxPolicy, bundled_policy_path, resolve_policy_path, shown
+from jetbot_rt.policy import (
+    META_PREFIX,
+    OnnxPolicy,
+    bundled_policy_path,
+    resolve_policy_path,
+    shown,
+)
 from jetbot_rt.recorder import Recorder
 from jetbot_rt.recorder import open_for_run as open_recorder
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
@@ -263,7 +269,8 @@ class Runtime:
     def connect(self, loaded: Loaded) -> Connected:
         """The robot: its motor board opened (every output off), its drive behind the latch."""
         spec = loaded.policy.spec
-        options = BackendOptions(frame_size=(spec.width, spec.height), gui=self.args.gui)
+        options = BackendOptions(frame_size=(spec.width, spec.height), gui=self.args.gui,
+                                 task=loaded.policy.metadata.get(META_PREFIX + "task"))
         robot = make_backend(self.args.backend, self.config, options)
         self.shutdown.robot(robot)
         robot.connect()

@@ -25,9 +25,10 @@ class BackendOptions:
     """Run-time facts a backend may need beyond the config file."""
 
     def __init__(self, frame_size: tuple[int, int] = DEFAULT_FRAME_SIZE,
-                 gui: bool = False) -> None:
+                 gui: bool = False, task: str | None = None) -> None:
         self.frame_size = frame_size  # (width, height) the policy wants
         self.gui = gui
+        self.task = task  # the task the policy was trained for (its metadata), if it says
 
 
 def make_backend(name: str, config: Config, options: BackendOptions | None = None) -> Robot:

@@ -17,6 +17,7 @@ import numpy as np
 
 from jetbot_rt.hal.base import Camera, Drive, Frame, Robot
 from jetbot_rt.sim.randomize import sample
+from jetbot_rt.sim.tasks import get_task, sample_scene
 from jetbot_rt.sim.world import JetbotWorld
 
 if TYPE_CHECKING:
@@ -101,7 +102,8 @@ class SimRobot(Robot):
         self._sim_camera.capture()
 
     def state(self) -> dict[str, object]:
-        return {"pose": list(self._world.robot_pose()), "sim_time": self._world.sim_time}
+        return {"pose": list(self._world.robot_pose()), "sim_time": self._world.sim_time,
+                "goal_distance": self._goal_distance_m}
 
     def stats(self) -> dict[str, float]:
         return {"travelled_m": round(self._travelled_m, 3),
@@ -113,10 +115,16 @@ class SimRobot(Robot):
 
 
 def build_backend(config: Config, options: BackendOptions) -> Robot:
-    """The world in its seed scene, rendering at the policy's frame size (the options').
-    With ``[randomize] enabled = true`` the [sim] knobs are drawn once, seeded by [sim] seed."""
+    """The world in the scene of the policy's task (``[sim] task``, else the policy's
+    metadata, else forward) drawn with ``[sim] seed``, the robot at the task's nominal pose
+    -- the env's ``reset(seed=seed, options={"start_noise": False})`` --, rendering at the
+    policy's frame size. With ``[randomize] enabled = true`` the [sim] knobs are drawn once,
+    from the same seeded generator after the scene (as the env does)."""
+    task = get_task(config.sim.task or options.task or "forward")
+    rng = np.random.default_rng(config.sim.seed)
+    scene = sample_scene(task, rng, start_noise=False)
     world = JetbotWorld(config.sim, gui=options.gui, image_size=tuple(options.frame_size))
-    if config.randomize.enabled:
-        rng = np.random.default_rng(config.sim.seed)
-        world.reset(sim=sample(config.sim, config.randomize, rng))
+    world.reset(robot_pose=scene.robot_pose, block_xy=scene.goal_xy,
+                sim=sample(config.sim, config.randomize, rng) if config.randomize.enabled
+                else None, distractors=scene.distractors)
     return SimRobot(world, config.sim)

@@ -12,6 +12,7 @@ import dataclasses
 import math
 import os
 import sys
+from collections.abc import Sequence
 from importlib import resources
 from typing import TYPE_CHECKING
 
@@ -40,6 +41,12 @@ CAMERA_FAR = 5.0
 """m; the room's diagonal is 4.2 m."""
 GRAVITY = -9.81
 BLOCK_HALF_SIZE = 0.025
+BLOCK_COLORS: dict[str, tuple[float, float, float]] = {
+    "red": (0.9, 0.05, 0.05),
+    "green": (0.1, 0.65, 0.15),
+    "blue": (0.1, 0.2, 0.9),
+}
+"""RGB of the blocks: the goal is red (block.urdf's colour), distractors green or blue."""
 
 LEFT, RIGHT, CAMERA_LINK = 0, 1, 3  # joint/link indices in jetbot.urdf's order
 _WHEELS = (LEFT, RIGHT)
@@ -115,8 +122,10 @@ class JetbotWorld:
         robot_pose: tuple[float, float, float] = (-0.6, 0.0, 0.0),
         block_xy: tuple[float, float] = (0.3, 0.0),
         sim: SimConfig | None = None,
+        distractors: Sequence[tuple[float, float, str]] = (),
     ) -> None:
-        """Place the robot (x, y, yaw) and the block; motors at rest, ``sim_time`` = 0.
+        """Place the robot (x, y, yaw), the red goal block and the distractor blocks
+        (``(x, y, colour name)``, see ``BLOCK_COLORS``); motors at rest, ``sim_time`` = 0.
         ``sim``: new ``[sim]`` settings from this episode on (the domain randomization's
         draw); the physics rate, the image size and supersample stay the world's own.
 
@@ -145,6 +154,15 @@ class JetbotWorld:
             _asset("block.urdf"), (block_xy[0], block_xy[1], BLOCK_HALF_SIZE), physicsClientId=c
         )
         appearance.apply_colors(c, room, self._block, self._sim)
+        self._block_start = (float(block_xy[0]), float(block_xy[1]))
+        self._distractors: list[int] = []
+        for dx, dy, color in distractors:
+            if color not in BLOCK_COLORS:
+                raise UsageError(f"unknown block colour {color!r} (known: {sorted(BLOCK_COLORS)})")
+            body = p.loadURDF(_asset("block.urdf"), (dx, dy, BLOCK_HALF_SIZE), physicsClientId=c)
+            p.changeVisualShape(body, -1, rgbaColor=(*BLOCK_COLORS[color], 1.0),
+                                physicsClientId=c)
+            self._distractors.append(body)
         info = p.getDynamicsInfo(self._robot, -1, physicsClientId=c)
         self._com_to_link = p.invertTransform(info[3], info[4], physicsClientId=c)
         # Free-wheeling until the first step: PyBullet's default joint motor would brake.
@@ -257,6 +275,22 @@ class JetbotWorld:
         """The block's centre (m)."""
         position, _ = p.getBasePositionAndOrientation(self._block, physicsClientId=self._client)
         return tuple(position)
+
+    def block_shift(self) -> float:
+        """How far (m, on the floor) the goal block has moved from where ``reset`` put it."""
+        x, y, _ = self.block_position()
+        return math.hypot(x - self._block_start[0], y - self._block_start[1])
+
+    def distractor_positions(self) -> list[tuple[float, float, float]]:
+        """Centres (m) of the distractor blocks, in ``reset``'s order."""
+        c = self._client
+        return [tuple(p.getBasePositionAndOrientation(b, physicsClientId=c)[0])
+                for b in self._distractors]
+
+    def robot_speed(self) -> float:
+        """Horizontal speed (m/s) of the robot's centre of mass."""
+        (vx, vy, _), _ = p.getBaseVelocity(self._robot, physicsClientId=self._client)
+        return math.hypot(vx, vy)
 
     def distance_to_block(self) -> float:
         """From the robot's base_link origin to the block's centre, in 3-D (m)."""

@@ -1,98 +1,138 @@
 """``jetbot-train``: train a policy in the sim, export a checkpoint to ONNX, evaluate a policy.
 
 Bad input (unknown task, missing or foreign checkpoint, non-positive counts, an output path
-that cannot be written) is one line on stderr and exit code 2.
+that cannot be written) is one line on stderr and exit code 2. Without the ``train`` extra
+installed, one line naming it, exit code 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
+import shlex
 import sys
 from pathlib import Path
 
 from jetbot_rt.cli import OneLineParser, plain
-from jetbot_rt.config import load_config
 from jetbot_rt.errors import EXIT_OK, EXIT_USAGE, UsageError
 
+TRAIN_EXTRA_MODULES = ("torch", "onnx", "gymnasium", "matplotlib", "tqdm", "pybullet")
+EXIT_INTERRUPTED = 130
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
-    return value
+
+def _task_list() -> str:
+    from jetbot_rt.sim.tasks import TASKS
+
+    return "tasks: " + "; ".join(f"{t.name} -- {t.description}" for t in TASKS.values())
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(prog="jetbot-train", description=plain(__doc__.splitlines()[0]))
+    from jetbot_rt.sim.tasks import TASKS
+    from jetbot_rt.train.evaluate import ABLATIONS
+    from jetbot_rt.train.options import add_ppo_arguments, positive_int
+
+    formatter = argparse.ArgumentDefaultsHelpFormatter
+    parser = OneLineParser(prog="jetbot-train", description=plain(__doc__.splitlines()[0]),
+                           epilog=_task_list())
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+    tasks = sorted(TASKS)
+    cores = os.cpu_count() or 1
 
-    train = sub.add_parser("train", help="train a policy with PPO in the PyBullet sim",
-                           description="train a policy with PPO in the PyBullet sim")
-    train.add_argument("--task", default="forward", help="task name (default forward)")
-    train.add_argument("--timesteps", type=_positive_int, required=True,
-                       help="environment steps in total, over all envs")
-    train.add_argument("--num-envs", type=_positive_int, default=os.cpu_count() or 1,
-                       help="envs stepped together (default: one per core)")
-    train.add_argument("--workers", type=int, default=None,
-                       help="env processes: 0 runs the envs in the training process; "
-                            "default one process per env")
-    train.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                       help="env workers as Ray actors: alone, Ray on this machine; 'auto' "
-                            "the cluster this machine is in; or HOST:PORT (needs the cluster "
-                            "extra; docs/TRAINING.md)")
-    train.add_argument("--out", required=True, help="output directory")
-    train.add_argument("--config", help="TOML config (sim, actions, loop sections are used)")
-    train.add_argument("--seed", type=int, default=1, help="seed of the envs and of PPO")
-    train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    train = sub.add_parser(
+        "train", help="train a policy with PPO in the PyBullet sim", formatter_class=formatter,
+        description="Train a camera-image policy with PPO in the PyBullet sim. Writes "
+        "checkpoint.pt, policy.onnx, metrics.csv, learning_curve.png (and TensorBoard events "
+        "when tensorboard is installed) to --out. Ctrl-C saves a checkpoint and prints the "
+        "command that resumes.", epilog=_task_list())
+    train.add_argument("--task", default="forward", choices=tasks, help="the task to learn")
+    train.add_argument("--config", help="TOML file: [sim], [actions], [loop] shape the env; "
+                       "a [train] table (and [train.model]) sets the PPO options below")
+    add_ppo_arguments(train)
 
-    export = sub.add_parser("export", help="export a checkpoint to ONNX (with a parity check)",
-                            description="export a checkpoint to ONNX (with a parity check)")
-    export.add_argument("--checkpoint", required=True, help="checkpoint.pt written by train")
+    export = sub.add_parser(
+        "export", help="export a checkpoint to ONNX (with a parity check)",
+        formatter_class=formatter,
+        description="Export a training checkpoint to ONNX with jetbot_rt metadata (layout, "
+        "colour order, pixel range, max_speed, task); fails (exit 2) if onnxruntime and torch "
+        "disagree by 1e-4 or more.")
+    export.add_argument("--checkpoint", required=True, help="checkpoint.pt from train")
     export.add_argument("--out", required=True, help="ONNX file to write")
-    export.add_argument("--opset", type=_positive_int, default=16, help="ONNX opset")
+    export.add_argument("--opset", type=positive_int, default=16, help="ONNX opset")
 
-    evaluate = sub.add_parser("eval", help="evaluate an ONNX policy deterministically (mu)",
-                              description="evaluate an ONNX policy deterministically (mu)")
-    evaluate.add_argument("--policy", help="ONNX file (default: the bundled policy)")
-    evaluate.add_argument("--task", default="forward", help="task name")
-    evaluate.add_argument("--episodes", type=_positive_int, default=100,
-                          help="episodes to run")
-    evaluate.add_argument("--num-envs", type=_positive_int, default=os.cpu_count() or 1,
-                          help="worker processes (default: one per core)")
+    evaluate = sub.add_parser(
+        "eval", help="evaluate an ONNX policy deterministically (mu)", formatter_class=formatter,
+        description="Evaluate an ONNX policy on a task's seeded episodes with the runtime's "
+        "frame preparation; --ablate runs the same episodes blind or with a seam opened.",
+        epilog=_task_list())
+    evaluate.add_argument("--policy", help="ONNX file (default: the policy bundled for --task)")
+    evaluate.add_argument("--task", default="forward", choices=tasks, help="the task")
+    evaluate.add_argument("--episodes", type=positive_int, default=100, help="episodes")
+    evaluate.add_argument("--num-envs", type=positive_int, default=cores,
+                          help="worker processes (one per core)")
     evaluate.add_argument("--seed", type=int, default=10_000,
-                          help="episode i starts from the pose drawn with seed + i")
-    evaluate.add_argument("--config", help="TOML config")
+                          help="episode i uses the scene drawn with seed + i")
+    evaluate.add_argument("--config", help="TOML config ([sim] conditions, [actions], [policy])")
+    evaluate.add_argument(
+        "--ablate", choices=ABLATIONS,
+        help="blank: a constant grey image; bgr / pixel-range: frames prepared in the other "
+        "colour order / pixel range than the model declares; constant-forward: mu = [1, 1], "
+        "no network")
     evaluate.add_argument("--json", action="store_true", help="one JSON object on stdout")
     evaluate.add_argument("--video", metavar="DIR",
                           help="record each episode into DIR/episode-<seed>/ as run --record "
                                "does (look at it with jetbot-rt report)")
+    evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
 
-def _train(args: argparse.Namespace) -> int:
-    from jetbot_rt.train.env import get_task
-    from jetbot_rt.train.ppo import PPOArgs, train
+def _load_train_config(path: str | None) -> tuple[object, dict]:
+    from jetbot_rt.config import from_dict, read_toml
 
-    get_task(args.task)
-    config = load_config(args.config)
-    summary = train(PPOArgs(
-        task=args.task, total_timesteps=args.timesteps, num_envs=args.num_envs,
-        workers=args.workers, ray=args.ray, out=args.out,
-        config=config, seed=args.seed, resume=args.resume, progress=not args.no_progress,
-    ))
+    if path is None:
+        from jetbot_rt.config import Config
+
+        return Config(), {}
+    data = read_toml(path)
+    table = data.get("train", {})
+    if not isinstance(table, dict):
+        raise UsageError(f"config {path}: [train] must be a table")
+    try:
+        return from_dict(data), table
+    except UsageError as exc:
+        raise UsageError(f"config {path}: {exc}") from None
+
+
+def _resume_command(argv: list[str]) -> str:
+    words = ["jetbot-train", *argv]
+    if "--resume" not in words:
+        words.append("--resume")
+    return shlex.join(words)
+
+
+def _train(args: argparse.Namespace, argv: list[str]) -> int:
+    from jetbot_rt.train.options import overrides
+    from jetbot_rt.train.ppo import Interrupted, ppo_args, train
+
+    config, table = _load_train_config(args.config)
+    ppo = ppo_args(args.task, overrides(args, table))
+    ppo.config = config
+    try:
+        summary = train(ppo)
+    except Interrupted as stop:
+        summary = stop.summary
+        print(f"\ninterrupted at {summary['global_step']} steps; wrote {summary['checkpoint']}, "
+              f"{summary['policy']} and the learning curve. Resume with:\n"
+              f"  {_resume_command(argv)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     print(f"trained {summary['global_step']} steps in {summary['wall_s']:.0f} s "
           f"({summary['steps_per_s']} steps/s); checkpoint {summary['checkpoint']}, "
           f"policy {summary['policy']}")
     return EXIT_OK
 
 
-def _export(args: argparse.Namespace) -> int:
+def _export(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.train.export import export_checkpoint
 
     out = Path(args.out)
@@ -103,7 +143,8 @@ def _export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _eval(args: argparse.Namespace) -> int:
+def _eval(args: argparse.Namespace, argv: list[str]) -> int:
+    from jetbot_rt.config import load_config
     from jetbot_rt.train.evaluate import evaluate
 
     # PyBullet's C library prints a banner on stdout; with --json, stdout carries only JSON.
@@ -113,13 +154,16 @@ def _eval(args: argparse.Namespace) -> int:
         os.dup2(2, 1)
     result = evaluate(
         args.policy, task=args.task, episodes=args.episodes, seed=args.seed,
-        num_workers=args.num_envs, config=load_config(args.config), video_dir=args.video,
+        num_workers=args.num_envs, config=load_config(args.config), ablate=args.ablate,
+        video_dir=args.video,
+        progress=not args.no_progress and sys.stderr.isatty(),
     )
     if args.json:
         json_out.write(json.dumps(result) + "\n")
         json_out.flush()
     else:
-        print(f"policy {result['policy']}, task {result['task']}: "
+        ablated = f" (ablate {result['ablate']})" if result["ablate"] else ""
+        print(f"policy {result['policy']}{ablated}, task {result['task']}: "
               f"success {result['success_rate']:.0%} over {result['episodes']} episodes, "
               f"mean return {result['mean_return']:.4g}, "
               f"mean final distance {result['mean_final_distance']:.3f} m "
@@ -130,15 +174,25 @@ def _eval(args: argparse.Namespace) -> int:
 COMMANDS = {"train": _train, "export": _export, "eval": _eval}
 
 
+def missing_extra() -> list[str]:
+    return [m for m in TRAIN_EXTRA_MODULES if importlib.util.find_spec(m) is None]
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
-    try:
-        return COMMANDS[args.command](args)
-    except UsageError as exc:
-        print(f"jetbot-train {args.command}: error: {exc}", file=sys.stderr)
+    argv = sys.argv[1:] if argv is None else argv
+    missing = missing_extra()
+    if missing:
+        print("jetbot-train: error: needs the train extra (missing "
+              f"{', '.join(missing)}): pip install 'jetbot_rt[sim,train]'", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        return 130
+    try:
+        args = build_parser().parse_args(argv)
+        return COMMANDS[args.command](args, argv)
+    except UsageError as exc:
+        print(f"jetbot-train {argv[0] if argv else ''}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:  # before training started (or in export/eval): nothing to save
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -20,6 +19,9 @@ from gymnasium import spaces
 from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.config import Config, SimConfig
 from jetbot_rt.errors import UsageError
+from jetbot_rt.sim.tasks import TASKS, Scene, Task, get_task, outcome, sample_scene
+
+__all__ = ["POLICY_IMAGE_SIZE", "TASKS", "JetbotEnv", "Task", "get_task", "make_task_env"]
 
 POLICY_IMAGE_SIZE = 56
 """Side of the square camera image the trainer renders and its networks take (the one
@@ -28,47 +30,17 @@ MIN_REWARD_DISTANCE = 0.01
 """m; the reward's 1/d is evaluated at no less than this (bodies never get this close)."""
 
 
-@dataclass(frozen=True)
-class Task:
-    name: str
-    robot_pose: tuple[float, float, float]
-    """Nominal start (x, y, yaw) of the robot's axle midpoint."""
-    block_xy: tuple[float, float]
-    episode_steps: int
-    """Episodes end only by this time limit (control ticks)."""
-    success_distance: float
-    """m; an episode succeeds when the final robot-block distance is below this."""
-    start_xy_noise: float
-    """m; uniform +- noise on the start x and y (seeded by ``reset(seed=...)``)."""
-    start_yaw_noise: float
-    """rad; uniform +- noise on the start yaw."""
-    randomize: bool = False
-    """Domain randomization ([randomize] ranges) unless the env or the config says otherwise."""
-
-
-TASKS: dict[str, Task] = {
-    # Why these numbers: docs/TRAINING.md ("The forward task").
-    "forward": Task(
-        name="forward",
-        robot_pose=(-0.6, 0.0, 0.0),
-        block_xy=(0.3, 0.0),
-        episode_steps=450,
-        success_distance=0.15,
-        start_xy_noise=0.02,
-        start_yaw_noise=0.15,
-    ),
-}
-
-
-def get_task(name: str) -> Task:
-    if name not in TASKS:
-        raise UsageError(f"unknown task {name!r} (known: {', '.join(sorted(TASKS))})")
-    return TASKS[name]
-
-
 def forward_reward(distance: float) -> float:
     """The seed task's reward, ``exp(1/d) - 30``."""
     return math.exp(1.0 / max(distance, MIN_REWARD_DISTANCE)) - 30.0
+
+
+def task_reward(task: Task, result: dict[str, Any]) -> float:
+    """The registered env's reward: the seed's ``exp(1/d) - 30`` for forward; for the other
+    tasks 1 on the step that succeeds, else 0 (shaping for training lives in wrappers)."""
+    if task.name == "forward":
+        return forward_reward(result["distance"])
+    return 1.0 if result["is_success"] else 0.0
 
 
 def action_pipeline_of(config: Config, model_max_speed: float | None = None) -> ActionPipeline:
@@ -76,8 +48,9 @@ def action_pipeline_of(config: Config, model_max_speed: float | None = None) -> 
     return ActionPipeline.from_config(config.actions, model_max_speed)
 
 
-def max_speed_of(config: Config) -> float:
-    return action_pipeline_of(config).max_speed
+def max_speed_of(config: Config, task: Task | None = None) -> float:
+    """The duty at |mu| = 1 a task trains with: ``[actions] max_speed``, else the task's."""
+    return action_pipeline_of(config, task.max_speed if task else None).max_speed
 
 
 class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -86,11 +59,16 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
     Action: ``[left, right]`` in [-1, 1].
 
     ``model_max_speed`` is the policy's metadata value, used (as by the runtime) when the
-    config sets none. ``randomize``: draw the ``[sim]`` knobs from ``[randomize]`` at each
-    reset (default: ``[randomize] enabled``, else the task's choice); the draw is in the reset's
-    ``info["sim_params"]``. ``reset(options={"start_noise": False})`` starts exactly at the task's
-    nominal pose,
-    ``options={"robot_pose": (x, y, yaw)}`` at a given one.
+    config sets none; without either, the task's ``max_speed``. ``randomize``: draw the
+    ``[sim]`` knobs from ``[randomize]`` at each reset (default: ``[randomize] enabled``,
+    else the task's choice); the draw is in the reset's
+    ``info["sim_params"]``. ``reset(options={"start_noise": False})`` starts exactly at the
+    task's nominal pose (the blocks are still placed from the seed),
+    ``options={"robot_pose": (x, y, yaw)}`` at a given one. A task with ``early_end`` ends
+    (``terminated``) at its first successful step or once its goal has been pushed too far;
+    every task is truncated at ``episode_steps``. ``info``: ``distance``, ``block_shift``,
+    ``speed``, ``is_success``, ``failed`` (``jetbot_rt.sim.tasks.outcome``), ``aim_error``,
+    ``goal_xy``, ``pose``, ``duty``, ``sim_time``.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 30}
@@ -114,7 +92,9 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.config = config or Config()
         self.render_mode = render_mode
         self.start_noise = start_noise
-        self.pipeline = action_pipeline_of(self.config, model_max_speed)
+        self.pipeline = action_pipeline_of(
+            self.config, model_max_speed if model_max_speed is not None else self.task.max_speed
+        )
         if randomize is None:
             randomize = self.config.randomize.enabled
         self.randomize = self.task.randomize if randomize is None else randomize
@@ -133,19 +113,17 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.world = JetbotWorld(self.config.sim, image_size=(width, height))
         self._frame = np.zeros(self.observation_space.shape, dtype=np.uint8)
         self._steps = 0
+        self.scene = Scene(self.task.robot_pose, self.task.block_xy or (0.0, 0.0))
         self.sim_params: dict[str, Any] = {}
         """The last reset's [sim] knobs (``randomize.DRAWN``), as in its ``info``."""
 
-    def _start_pose(self, options: dict[str, Any]) -> tuple[float, float, float]:
+    def _scene(self, options: dict[str, Any]) -> Scene:
+        scene = sample_scene(self.task, self.np_random,
+                             options.get("start_noise", self.start_noise))
         if "robot_pose" in options:
             x, y, yaw = (float(v) for v in options["robot_pose"])
-            return (x, y, yaw)
-        x, y, yaw = self.task.robot_pose
-        if options.get("start_noise", self.start_noise):
-            dx, dy = self.np_random.uniform(-self.task.start_xy_noise, self.task.start_xy_noise, 2)
-            dyaw = self.np_random.uniform(-self.task.start_yaw_noise, self.task.start_yaw_noise)
-            x, y, yaw = x + float(dx), y + float(dy), yaw + float(dyaw)
-        return (x, y, yaw)
+            scene = Scene((x, y, yaw), scene.goal_xy, scene.distractors)
+        return scene
 
     def _aim_error(self) -> float:
         """m; how far the block's centre lies from the robot's line of travel (the distance
@@ -158,11 +136,10 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         return math.hypot(dx, dy) * math.sin(min(bearing, math.pi / 2))
 
     def _info(self, duties: tuple[float, float]) -> dict[str, Any]:
-        distance = self.world.distance_to_block()
         return {
-            "distance": distance,
+            **outcome(self.task, self.world),
             "aim_error": self._aim_error(),
-            "is_success": distance < self.task.success_distance,
+            "goal_xy": np.array(self.scene.goal_xy),
             "pose": np.array(self.world.robot_pose()),
             "duty": np.array(duties),
             "sim_time": self.world.sim_time,
@@ -170,8 +147,8 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _episode_sim(self) -> SimConfig:
         """This episode's [sim]: a draw from [randomize], or the config's (with a fresh noise
-        seed when the camera is noisy); drawn after the start pose, so randomization leaves
-        the start poses of a seed as they are."""
+        seed when the camera is noisy); drawn after the scene, so randomization leaves the
+        scenes of a seed as they are."""
         from jetbot_rt.sim.randomize import sample  # pybullet: only when an env is built
 
         sim = self.config.sim
@@ -187,8 +164,9 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         from jetbot_rt.sim.randomize import params as sim_params
 
         super().reset(seed=seed)
-        pose = self._start_pose(options or {})
-        self.world.reset(robot_pose=pose, block_xy=self.task.block_xy, sim=self._episode_sim())
+        self.scene = self._scene(options or {})
+        self.world.reset(robot_pose=self.scene.robot_pose, block_xy=self.scene.goal_xy,
+                         sim=self._episode_sim(), distractors=self.scene.distractors)
         self.sim_params = sim_params(self.world.sim)
         self._steps = 0
         self._frame = self.world.frame()
@@ -203,9 +181,10 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self._steps += 1
         self._frame = self.world.frame()
         info = self._info(duties)
-        reward = forward_reward(info["distance"])
-        truncated = self._steps >= self.task.episode_steps
-        return self._frame, reward, False, truncated, info
+        reward = task_reward(self.task, info)
+        terminated = self.task.early_end and (info["is_success"] or info["failed"])
+        truncated = not terminated and self._steps >= self.task.episode_steps
+        return self._frame, reward, bool(terminated), truncated, info
 
     def render(self) -> np.ndarray | None:
         return self._frame.copy() if self.render_mode == "rgb_array" else None

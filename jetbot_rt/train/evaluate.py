@@ -1,11 +1,23 @@
 """Deterministic evaluation of an ONNX policy: the runtime's ``OnnxPolicy`` (same frame
-preparation, action output ``mu``) driving the env. Episode ``i`` starts from the pose drawn
-with seed ``seed + i``, so results do not depend on how episodes are spread over workers."""
+preparation, action output ``mu``) driving the env at the policy's input size. Episode
+``i`` starts from the scene drawn with seed ``seed + i``, so results do not depend on how
+episodes are spread over workers.
+
+Blind baselines and seam ablations (``ablate``), on the same episodes:
+
+- ``blank``: the policy sees a constant mid-grey image instead of the camera frame;
+- ``bgr``: frames prepared in the other colour order than the model declares (the runtime's
+  ``[policy] color_order`` override: the seam of a BGR camera fed to an RGB-trained model);
+- ``pixel-range``: frames prepared in another pixel range than the model declares (0..1 for a
+  0..255 model, else 0..255);
+- ``constant-forward``: no network at all, ``mu = [1, 1]`` at every step.
+"""
 
 from __future__ import annotations
 
 import multiprocessing
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -17,14 +29,68 @@ from jetbot_rt.policy import OnnxPolicy, resolve_policy_path
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of, get_task
 from jetbot_rt.train.video import EpisodeRecording, timed
 
+ABLATIONS = ("blank", "bgr", "pixel-range", "constant-forward")
+BLANK_LEVEL = 128
 
-def load_policy(path: str | Path, config: Config, single_thread: bool = True) -> OnnxPolicy:
+
+class ConstantPolicy:
+    """``mu`` = ``value`` whatever the frame; no max_speed of its own, so the task's applies.
+    ``spec`` and ``path`` are the replaced policy's (the env renders at its input size)."""
+
+    max_speed = None
+    metadata: dict[str, str] = {}  # noqa: RUF012 - read only
+
+    def __init__(self, replaced: OnnxPolicy, value: tuple[float, float] = (1.0, 1.0)) -> None:
+        self.value = np.array(value, dtype=np.float64)
+        self.spec = replaced.spec
+        self.path = replaced.path
+
+    def infer(self, image: np.ndarray) -> np.ndarray:
+        return self.value.copy()
+
+
+class BlankPolicy:
+    """The wrapped policy, fed a constant mid-grey frame of the camera's size."""
+
+    def __init__(self, policy: OnnxPolicy) -> None:
+        self.policy = policy
+        self.max_speed = policy.max_speed
+        self.spec, self.path, self.metadata = policy.spec, policy.path, policy.metadata
+
+    def infer(self, image: np.ndarray) -> np.ndarray:
+        return self.policy.infer(np.full_like(image, BLANK_LEVEL))
+
+
+def _ablated_config(config: Config, policy: OnnxPolicy, ablate: str | None) -> Config:
+    spec = policy.spec
+    if ablate == "bgr":
+        swapped = "BGR" if spec.color_order == "RGB" else "RGB"
+        return replace(config, policy=replace(config.policy, color_order=swapped))
+    if ablate == "pixel-range":
+        other = "0-1" if spec.pixel_range == "0-255" else "0-255"
+        return replace(config, policy=replace(config.policy, pixel_range=other))
+    return config
+
+
+def load_policy(path: str | Path, config: Config, single_thread: bool = True,
+                ablate: str | None = None) -> Any:
     """``OnnxPolicy.load`` (all of its checks); with ``single_thread`` onnxruntime uses one
-    thread, so parallel eval workers do not fight over cores."""
-    return OnnxPolicy.load(path, config.policy, threads=1 if single_thread else None)
+    thread, so parallel eval workers do not fight over cores. ``ablate``: see the module."""
+    if ablate is not None and ablate not in ABLATIONS:
+        raise UsageError(f"unknown ablation {ablate!r} (known: {', '.join(ABLATIONS)})")
+    threads = 1 if single_thread else None
+    policy = OnnxPolicy.load(path, config.policy, threads=threads)
+    if ablate == "constant-forward":
+        return ConstantPolicy(policy)
+    if ablate == "blank":
+        return BlankPolicy(policy)
+    if ablate in ("bgr", "pixel-range"):
+        return OnnxPolicy.load(path, _ablated_config(config, policy, ablate).policy,
+                               threads=threads)
+    return policy
 
 
-def run_episode(env: JetbotEnv, policy: OnnxPolicy, seed: int | None,
+def run_episode(env: JetbotEnv, policy: Any, seed: int | None,
                 options: dict[str, Any] | None = None,
                 video_dir: str | None = None) -> dict[str, Any]:
     """One episode with ``mu`` as the action; returns return, final distance, success.
@@ -32,18 +98,22 @@ def run_episode(env: JetbotEnv, policy: OnnxPolicy, seed: int | None,
     video = EpisodeRecording.of(video_dir, env, policy, seed) if video_dir else None
     obs, info = env.reset(seed=seed, options=options)
     total = 0.0
+    steps = 0
     truncated = terminated = False
     while not (truncated or terminated):
         seen = obs
         mu, infer_ms = timed(policy.infer, seen)
         (obs, reward, terminated, truncated, info), step_ms = timed(env.step, mu)
         total += reward
+        steps += 1
         if video is not None:
             video.step(seen, mu, info, infer_ms, step_ms)
     result = {
         "seed": seed,
         "return": total,
+        "steps": steps,
         "final_distance": float(info["distance"]),
+        "block_shift": float(info["block_shift"]),
         "success": bool(info["is_success"]),
     }
     if video is not None:
@@ -51,15 +121,21 @@ def run_episode(env: JetbotEnv, policy: OnnxPolicy, seed: int | None,
     return result
 
 
-def _run_episodes(policy_path: str, task: str, config: Config, seeds: list[int],
-                  video_dir: str | None = None) -> list[dict]:
-    policy = load_policy(policy_path, config)
-    env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
-                    image_size=(policy.spec.width, policy.spec.height))
-    try:
-        return [run_episode(env, policy, seed, video_dir=video_dir) for seed in seeds]
-    finally:
-        env.close()
+_WORKER: dict[str, Any] = {}
+"""One policy and env per worker process, kept between its episodes."""
+
+
+def _run_one(job: tuple[str, str, Config, int, str | None, str | None]) -> dict:
+    path, task, config, seed, ablate, video_dir = job
+    key = (path, task, repr(config), ablate)
+    if _WORKER.get("key") != key:
+        if "env" in _WORKER:
+            _WORKER["env"].close()
+        policy = load_policy(path, config, ablate=ablate)
+        env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
+                        image_size=(policy.spec.width, policy.spec.height))
+        _WORKER.update(key=key, policy=policy, env=env)
+    return run_episode(_WORKER["env"], _WORKER["policy"], seed, video_dir=video_dir)
 
 
 def evaluate(
@@ -70,33 +146,50 @@ def evaluate(
     seed: int = 10_000,
     num_workers: int = 1,
     config: Config | None = None,
+    ablate: str | None = None,
+    progress: bool = False,
     video_dir: str | None = None,
 ) -> dict[str, Any]:
-    """Evaluate ``policy_path`` (default: the bundled policy) over ``episodes`` episodes;
-    record each in ``video_dir/episode-<seed>/`` if given."""
+    """Evaluate ``policy_path`` (default: the bundled policy of ``task``) over ``episodes``
+    episodes; record each in ``video_dir/episode-<seed>/`` if given."""
+    from tqdm import tqdm
+
     if episodes <= 0:
         raise UsageError(f"--episodes must be > 0, got {episodes}")
     if num_workers <= 0:
         raise UsageError(f"--num-envs must be > 0, got {num_workers}")
     spec = get_task(task)
     config = config or Config()
-    path = resolve_policy_path(policy_path)
-    policy = load_policy(path, config)  # fail early, in this process, on a bad file
+    path = resolve_policy_path(policy_path, task)
+    policy = load_policy(path, config, ablate=ablate)  # fail early, here, on a bad file
     seeds = [seed + i for i in range(episodes)]
     workers = min(num_workers, episodes)
     start = time.perf_counter()
-    if workers == 1:
-        results = _run_episodes(str(path), task, config, seeds, video_dir)
-    else:
-        chunks = [seeds[i::workers] for i in range(workers)]
-        with multiprocessing.get_context("spawn").Pool(workers) as pool:
-            parts = pool.starmap(
-                _run_episodes, [(str(path), task, config, chunk, video_dir) for chunk in chunks]
-            )
-        results = sorted((r for part in parts for r in part), key=lambda r: r["seed"])
+    bar = tqdm(total=episodes, disable=not progress, unit="episode", dynamic_ncols=True)
+    try:
+        if workers == 1:
+            results = []
+            try:
+                for one in seeds:
+                    results.append(_run_one((str(path), task, config, one, ablate, video_dir)))
+                    bar.update(1)
+            finally:
+                if "env" in _WORKER:
+                    _WORKER.pop("env").close()
+                _WORKER.clear()
+        else:
+            jobs = [(str(path), task, config, one, ablate, video_dir) for one in seeds]
+            with multiprocessing.get_context("spawn").Pool(workers) as pool:
+                results = []
+                for result in pool.imap_unordered(_run_one, jobs):
+                    results.append(result)
+                    bar.update(1)
+            results.sort(key=lambda r: r["seed"])
+    finally:
+        bar.close()
     wall = time.perf_counter() - start
     return {
-        "policy": str(path),
+        "policy": "constant [1, 1]" if ablate == "constant-forward" else str(path),
         "task": task,
         "episodes": episodes,
         "success_rate": float(np.mean([r["success"] for r in results])),
@@ -106,7 +199,11 @@ def evaluate(
         "success_distance": spec.success_distance,
         "episode_steps": spec.episode_steps,
         "seed": seed,
-        "max_speed": action_pipeline_of(config, policy.max_speed).max_speed,
+        "max_speed": action_pipeline_of(
+            config, policy.max_speed if policy.max_speed is not None else spec.max_speed
+        ).max_speed,
+        "ablate": ablate,
+        "successes": [r["seed"] for r in results if r["success"]],
         "wall_s": round(wall, 2),
-        "env_steps_per_s": round(episodes * spec.episode_steps / wall, 1),
+        "env_steps_per_s": round(sum(r["steps"] for r in results) / wall, 1),
     }

@@ -6,16 +6,20 @@ process (``SyncVectorEnv``, ``workers=0``). Gymnasium 1.x vector envs autoreset 
 step by default, which would put a reset observation paired with an ignored action into the
 rollout; we ask for SAME_STEP autoreset and bootstrap the time-limit truncation from the final
 observation's value.
+The reward the learner sees is built by wrappers (``wrappers.py``): shaping per env,
+normalisation and clipping over the vector env.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import multiprocessing
 import os
+import signal
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -27,11 +31,16 @@ from tqdm import tqdm
 
 from jetbot_rt.config import Config
 from jetbot_rt.errors import UsageError
-from jetbot_rt.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from jetbot_rt.train.env import make_task_env, max_speed_of
+from jetbot_rt.train.checkpoint import (
+    CHECKPOINT_NAME,
+    load_checkpoint,
+    model_from_checkpoint,
+    save_checkpoint,
+)
+from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.export import export_model
 from jetbot_rt.train.model import ActorCritic, ModelConfig
-from jetbot_rt.train.normalize import RewardScaler
+from jetbot_rt.train.wrappers import Shaping, make_train_env, normalize_rewards
 
 METRICS_NAME = "metrics.csv"
 CURVE_NAME = "learning_curve.png"
@@ -51,14 +60,22 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+class Interrupted(Exception):
+    """Ctrl-C during training; the checkpoint, curve and policy were written."""
+
+    def __init__(self, summary: dict[str, Any]) -> None:
+        super().__init__("interrupted")
+        self.summary = summary
+
+
 @dataclass
 class PPOArgs:
     task: str = "forward"
-    """Task name (see ``jetbot_rt.train.env.TASKS``)."""
+    """Task name (see ``jetbot_rt.sim.tasks.TASKS``)."""
     total_timesteps: int = 40_000
     """Environment steps to collect in total, over all envs."""
-    num_envs: int = 2
-    """Envs stepped together, each with its own PyBullet client."""
+    num_envs: int = field(default_factory=lambda: usable_cores())
+    """Envs stepped together, each with its own PyBullet client; one per core by default."""
     workers: int | None = None
     """Env worker processes: None (default) runs each env in a process of its own
     (``AsyncVectorEnv``); 0 runs them all in the training process (``SyncVectorEnv``: no
@@ -76,24 +93,37 @@ class PPOArgs:
     """Seeds torch, the env start noise (env i gets seed + i) and minibatch shuffling."""
     resume: bool = False
     """Continue from ``out/checkpoint.pt`` (model, optimizer, step count, reward scale)."""
+    init: str | None = None
+    """Start from this checkpoint's network (any task: e.g. forward -> seek); a fresh
+    optimizer, step count and reward scale."""
     num_steps: int = 128
     """Steps per env per rollout; a rollout is num_envs * num_steps transitions."""
     learning_rate: float = 1e-3
+    """Adam's step size (at the start, see anneal_lr)."""
     anneal_lr: bool = True
     """Decay the learning rate linearly to zero over total_timesteps."""
     gamma: float = 0.99
+    """Discount factor."""
     gae_lambda: float = 0.95
+    """GAE's lambda."""
     num_minibatches: int = 4
+    """Minibatches per rollout in each update epoch."""
     update_epochs: int = 8
+    """Passes over each rollout."""
     clip_coef: float = 0.2
+    """PPO's ratio clip."""
     ent_coef: float = 0.0
+    """Entropy bonus coefficient."""
     vf_coef: float = 0.5
+    """Value loss coefficient."""
     max_grad_norm: float = 0.5
+    """Gradient norm clip."""
     reward_transform: str = "symlog"
-    """"symlog": learn from sign(r) * ln(1 + |r|) (then scale and clip); "none": raw reward.
-    The task reward spans -27 .. 1e4+; compressed, a step closer is visible at any distance."""
+    """"symlog": learn from sign(r) * ln(1 + |r|) of the task reward (then shaping, scale
+    and clip); "none": the task reward as is. The forward reward spans -27 .. 1e4+;
+    compressed, a step closer is visible at any distance."""
     shaping_coef: float = 1000.0
-    """Progress shaping ``c * (d - d')`` per step, d the robot-block distance in m (it sums
+    """Progress shaping ``c * (d - d')`` per step, d the robot-goal distance in m (it sums
     to ``c * (d_start - d_end)`` over an episode, so it ranks whole episodes as the distance
     they close does). Far from the block the seed reward is nearly flat (-27.0 at 0.9 m,
     -24.7 at 0.6 m): without this, a random policy's wheel commands leave no trace in the
@@ -105,6 +135,10 @@ class PPOArgs:
     huge reward at the block -- comes ~300 steps later, beyond gamma's horizon; this pays for
     a correction the step it is made. Potential-based, it sums to ``k * (e_start - e_end)``
     and cannot be farmed by wiggling. 0 turns it off."""
+    success_bonus: float = 0.0
+    """Added on the step that ends an episode with success (tasks with early_end)."""
+    fail_penalty: float = 0.0
+    """Subtracted on the step that ends an episode as failed (goal pushed away)."""
     reward_clip: float = 10.0
     """Clip of the scaled reward (reward / running std of the discounted return)."""
     checkpoint_every: int = 5
@@ -116,7 +150,52 @@ class PPOArgs:
     process may run on (its CPU affinity), not all the machine's; more threads than cores
     made PPO 10x slower (2 cores of 16 under taskset: 43 env steps/s instead of ~450)."""
     progress: bool = True
+    """Show a progress bar."""
     model: ModelConfig = field(default_factory=ModelConfig)
+    """The network (``model.py``)."""
+
+    @property
+    def shaping(self) -> Shaping:
+        return Shaping(self.reward_transform, self.shaping_coef, self.aim_coef,
+                       self.success_bonus, self.fail_penalty)
+
+
+TASK_DEFAULTS: dict[str, dict[str, Any]] = {
+    # Why these numbers: docs/TRAINING.md ("Training seek").
+    "seek": {
+        "total_timesteps": 300_000, "out": "runs/seek", "reward_transform": "none",
+        "shaping_coef": 10.0, "aim_coef": 5.0, "success_bonus": 10.0, "fail_penalty": 5.0,
+        "learning_rate": 3e-4,
+        "model": {"init_mu": 0.3},
+    },
+}
+"""Per task, the PPOArgs values that differ from the dataclass defaults; the command line
+and a ``[train]`` table override them."""
+
+
+def ppo_args(task: str, overrides: dict[str, Any] | None = None) -> PPOArgs:
+    """``PPOArgs`` for ``task``: dataclass defaults, then ``TASK_DEFAULTS[task]``, then
+    ``overrides`` (a ``[train]`` table or command-line values; ``model`` a dict)."""
+    get_task(task)
+    values: dict[str, Any] = {**TASK_DEFAULTS.get(task, {})}
+    model = dict(values.pop("model", {}))
+    for key, value in (overrides or {}).items():
+        if key == "model":
+            model.update(value)
+        else:
+            values[key] = value
+    names = {f.name for f in fields(PPOArgs)} - {"task", "config", "model"}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise UsageError(f"unknown training option(s) {', '.join(unknown)} "
+                         f"(known: {', '.join(sorted(names))})")
+    model_names = {f.name for f in fields(ModelConfig)}
+    if set(model) - model_names:
+        raise UsageError(f"unknown model option(s) {', '.join(sorted(set(model) - model_names))}"
+                         f" (known: {', '.join(sorted(model_names))})")
+    if "channels" in model:
+        model["channels"] = tuple(model["channels"])
+    return replace(PPOArgs(), task=task, **values, model=replace(ModelConfig(), **model))
 
 
 def _write_metrics_row(path: Path, row: dict[str, Any]) -> None:
@@ -164,26 +243,55 @@ def _prepare_out(out: Path) -> None:
         raise UsageError(f"cannot write to output directory {out}: {exc.strerror or exc}") from None
 
 
-def make_vector_env(args: PPOArgs, image_size: int) -> VectorEnv:
-    """SAME_STEP autoreset either way (module docstring)."""
-    size = (image_size, image_size)
-    factories = [partial(make_task_env, args.task, args.config, image_size=size)
+def _worker_env(task: str, config: Config, shaping: Shaping, image_size: int) -> Any:
+    """Built inside each worker: Ctrl-C is the learner's to handle (it saves a checkpoint
+    and then closes the workers), not a traceback from every worker."""
+    if multiprocessing.parent_process() is not None:  # AsyncVectorEnv also calls it here
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return make_train_env(task, config, shaping, image_size=(image_size, image_size))
+
+
+def make_vector_env(args: PPOArgs, image_size: int) -> tuple[VectorEnv, Any]:
+    """SAME_STEP autoreset either way (module docstring); the reward normaliser with it."""
+    factories = [partial(_worker_env, args.task, args.config, args.shaping, image_size)
                  for _ in range(args.num_envs)]
+    envs: VectorEnv
     if args.ray is not None:
         from jetbot_rt.train.ray_workers import RayVectorEnv
 
-        return RayVectorEnv(factories, address=args.ray, workers=args.workers)
+        envs = RayVectorEnv(factories, address=args.ray, workers=args.workers)
+        return normalize_rewards(envs, args.gamma, args.reward_clip)
     if args.workers == 0:
-        return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
-    return AsyncVectorEnv(
-        factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP, shared_memory=True
-    )
+        envs = SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
+    else:
+        envs = AsyncVectorEnv(factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP,
+                              shared_memory=True)
+    return normalize_rewards(envs, args.gamma, args.reward_clip)
+
+
+def _tensorboard(out: Path) -> Any:
+    """A SummaryWriter into ``out`` when the ``tensorboard`` extra is installed, else None."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(str(out))
+
+
+def _rms_state(rms: Any) -> dict[str, float]:
+    return {"mean": float(rms.mean), "var": float(rms.var), "count": float(rms.count)}
+
+
+def _load_rms(rms: Any, state: dict[str, float]) -> None:
+    rms.mean, rms.var, rms.count = (np.float64(state["mean"]), np.float64(state["var"]),
+                                    float(state["count"]))
 
 
 def train(args: PPOArgs) -> dict[str, Any]:
-    """Run PPO; writes checkpoint, ONNX, metrics and curve to ``args.out``; returns a summary."""
+    """Run PPO; writes checkpoint, ONNX, metrics and curve to ``args.out``; returns a summary.
+    Ctrl-C: writes them as they are and raises ``Interrupted`` (with the summary)."""
     if args.total_timesteps <= 0:
-        raise UsageError(f"--timesteps must be > 0, got {args.total_timesteps}")
+        raise UsageError(f"--total-timesteps must be > 0, got {args.total_timesteps}")
     if args.num_envs <= 0:
         raise UsageError(f"--num-envs must be > 0, got {args.num_envs}")
     if args.ray is not None and args.workers is not None and not 0 < args.workers <= args.num_envs:
@@ -192,6 +300,8 @@ def train(args: PPOArgs) -> dict[str, Any]:
     if args.ray is None and args.workers not in (None, 0, args.num_envs):
         raise UsageError(f"--workers must be 0 (envs in this process) or --num-envs "
                          f"({args.num_envs}, one process each), got {args.workers}")
+    get_task(args.task)
+    _ = args.shaping  # validates reward_transform before any worker starts
     out = Path(args.out)
     _prepare_out(out)
     checkpoint_path = out / CHECKPOINT_NAME
@@ -201,19 +311,21 @@ def train(args: PPOArgs) -> dict[str, Any]:
     torch.set_num_threads(args.torch_threads)
     rng = np.random.default_rng(args.seed)
     model = ActorCritic(args.model)
+    if args.init:
+        model = model_from_checkpoint(load_checkpoint(args.init)).train()
     optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate, eps=1e-5)
-    scaler = RewardScaler(args.num_envs, args.gamma, args.reward_clip)
     global_step, update, wall_before = 0, 0, 0.0
+    resume_state: dict[str, Any] | None = None
     if args.resume and checkpoint_path.exists():
-        state = load_checkpoint(checkpoint_path)
-        if state["task"] != args.task:
-            raise UsageError(f"{checkpoint_path} is for task {state['task']!r}, not {args.task!r}")
-        model = ActorCritic(ModelConfig.from_dict(state["model_config"]))
-        model.load_state_dict(state["model"])
+        resume_state = load_checkpoint(checkpoint_path)
+        if resume_state["task"] != args.task:
+            raise UsageError(f"{checkpoint_path} is for task {resume_state['task']!r}, "
+                             f"not {args.task!r}")
+        model = model_from_checkpoint(resume_state).train()
         optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate, eps=1e-5)
-        optimizer.load_state_dict(state["optimizer"])
-        scaler.load_state_dict(state["reward_scaler"])
-        global_step, update, wall_before = state["global_step"], state["update"], state["wall_s"]
+        optimizer.load_state_dict(resume_state["optimizer"])
+        global_step, update = resume_state["global_step"], resume_state["update"]
+        wall_before = resume_state["wall_s"]
         rng = np.random.default_rng(args.seed + update)
     elif not args.resume and metrics_path.exists():
         metrics_path.unlink()
@@ -221,12 +333,12 @@ def train(args: PPOArgs) -> dict[str, Any]:
     batch_size = args.num_envs * args.num_steps
     minibatch_size = max(1, batch_size // args.num_minibatches)
     num_updates = math.ceil(args.total_timesteps / batch_size)
-    max_speed = max_speed_of(args.config)
-    if args.reward_transform not in ("symlog", "none"):
-        raise UsageError(f"unknown reward transform {args.reward_transform!r} (symlog, none)")
-    symlog = args.reward_transform == "symlog"
+    max_speed = max_speed_of(args.config, get_task(args.task))
 
-    envs = make_vector_env(args, model.config.image_size)
+    envs, normalizer = make_vector_env(args, model.config.image_size)
+    if resume_state is not None and "reward_rms" in resume_state:
+        _load_rms(normalizer.return_rms, resume_state["reward_rms"])
+    writer = _tensorboard(out)
     with torch.no_grad():
         frame = torch.zeros((1, *envs.single_observation_space.shape))
         obs_shape = model.preprocess(frame).shape[1:]
@@ -237,16 +349,13 @@ def train(args: PPOArgs) -> dict[str, Any]:
     dones_buf = torch.zeros((args.num_steps, args.num_envs))
     values_buf = torch.zeros((args.num_steps, args.num_envs))
 
-    episode_returns = np.zeros(args.num_envs)
     recent_returns: deque[float] = deque(maxlen=20)
     recent_distances: deque[float] = deque(maxlen=20)
     recent_success: deque[float] = deque(maxlen=20)
     episodes = 0
 
     seeds = [args.seed + update * 1000 + i for i in range(args.num_envs)]
-    next_obs_np, reset_infos = envs.reset(seed=seeds)
-    prev_distance = np.asarray(reset_infos["distance"], dtype=np.float64)
-    prev_aim = np.asarray(reset_infos["aim_error"], dtype=np.float64)
+    next_obs_np, _ = envs.reset(seed=seeds)
     next_obs = model.preprocess(torch.from_numpy(next_obs_np))
     next_done = torch.zeros(args.num_envs)
     start = time.perf_counter()
@@ -254,6 +363,12 @@ def train(args: PPOArgs) -> dict[str, Any]:
     bar = tqdm(total=args.total_timesteps, initial=min(global_step, args.total_timesteps),
                disable=not args.progress, unit="step", dynamic_ncols=True)
     row: dict[str, Any] = {}
+    interrupted = False
+
+    def save() -> None:
+        _save(checkpoint_path, args, model, optimizer, normalizer.return_rms, global_step,
+              update, wall_before + time.perf_counter() - start, max_speed)
+
     try:
         while global_step < args.total_timesteps:
             update += 1
@@ -273,36 +388,20 @@ def train(args: PPOArgs) -> dict[str, Any]:
                 actions_buf[step] = action
                 next_obs_np, reward, terminated, truncated, infos = envs.step(action.numpy())
                 done = np.logical_or(terminated, truncated)
-                episode_returns += reward
-                learned = np.sign(reward) * np.log1p(np.abs(reward)) if symlog else reward
-                distance = np.asarray(infos["distance"], dtype=np.float64)
-                end_distance = distance.copy()
-                if done.any():
-                    end_distance[done] = infos["final_info"]["distance"][done]
-                aim = np.asarray(infos["aim_error"], dtype=np.float64)
-                end_aim = aim.copy()
-                if done.any():
-                    end_aim[done] = infos["final_info"]["aim_error"][done]
-                learned = (learned + args.shaping_coef * (prev_distance - end_distance)
-                           + args.aim_coef * (prev_aim - end_aim))
-                prev_distance, prev_aim = distance, aim
-                scaled = scaler(learned, done)
+                reward = np.asarray(reward, dtype=np.float64).copy()
                 # Time-limit truncation is not a real end: bootstrap from the final state.
-                if truncated.any() and "final_obs" in infos:
-                    idx = np.nonzero(truncated & ~terminated)[0]
-                    if idx.size:
-                        final = torch.from_numpy(np.stack(infos["final_obs"][idx]))
-                        with torch.no_grad():
-                            final_value = model.value(model.preprocess(final))
-                        scaled[idx] += args.gamma * final_value.numpy()
-                rewards_buf[step] = torch.as_tensor(scaled, dtype=torch.float32)
+                idx = np.nonzero(truncated & ~terminated)[0]
+                if idx.size and "final_obs" in infos:
+                    final = torch.from_numpy(np.stack(infos["final_obs"][idx]))
+                    with torch.no_grad():
+                        final_value = model.value(model.preprocess(final))
+                    reward[idx] += args.gamma * final_value.numpy()
+                rewards_buf[step] = torch.as_tensor(reward, dtype=torch.float32)
                 for i in np.nonzero(done)[0]:
                     final_info = infos["final_info"]
-                    distance = float(final_info["distance"][i])
-                    recent_returns.append(float(episode_returns[i]))
-                    recent_distances.append(distance)
+                    recent_returns.append(float(final_info["episode"]["r"][i]))
+                    recent_distances.append(float(final_info["distance"][i]))
                     recent_success.append(float(final_info["is_success"][i]))
-                    episode_returns[i] = 0.0
                     episodes += 1
                 next_obs = model.preprocess(torch.from_numpy(next_obs_np))
                 next_done = torch.as_tensor(done, dtype=torch.float32)
@@ -376,23 +475,31 @@ def train(args: PPOArgs) -> dict[str, Any]:
                 "approx_kl": round(approx_kl.item(), 5),
                 "clipfrac": round(float(np.mean(clipfracs)), 4),
                 "learning_rate": optimizer.param_groups[0]["lr"],
-                "reward_scale": round(scaler.scale, 2),
+                "reward_scale": round(float(np.sqrt(normalizer.return_rms.var + 1e-8)), 3),
                 "worker_restarts": getattr(envs.unwrapped, "restarts", 0),
             }
             _write_metrics_row(metrics_path, row)
+            if writer is not None:
+                for key, value in row.items():
+                    if key not in ("update", "global_step") and value != "":
+                        writer.add_scalar(f"train/{key}", float(value), global_step)
             bar.update(min(global_step, args.total_timesteps) - bar.n)
             bar.set_postfix(sps=row["steps_per_s"], ret=row["mean_return"],
                             succ=row["success_rate"], refresh=False)
             if update % args.checkpoint_every == 0 or global_step >= args.total_timesteps:
-                _save(checkpoint_path, args, model, optimizer, scaler, global_step, update,
-                      wall_before + elapsed, max_speed)
+                save()
+    except KeyboardInterrupt:
+        interrupted = True
+        save()
     finally:
         bar.close()
         envs.close()
+        if writer is not None:
+            writer.close()
 
-    export_model(model, out / POLICY_NAME, task=args.task, max_speed=max_speed)
+    export_model(model.eval(), out / POLICY_NAME, task=args.task, max_speed=max_speed)
     plot_learning_curve(metrics_path, out / CURVE_NAME)
-    return {
+    summary = {
         "global_step": global_step,
         "updates": num_updates if not row else row["update"],
         "wall_s": wall_before + time.perf_counter() - start,
@@ -400,10 +507,13 @@ def train(args: PPOArgs) -> dict[str, Any]:
         "checkpoint": str(checkpoint_path),
         "policy": str(out / POLICY_NAME),
     }
+    if interrupted:
+        raise Interrupted(summary)
+    return summary
 
 
 def _save(path: Path, args: PPOArgs, model: ActorCritic, optimizer: torch.optim.Optimizer,
-          scaler: RewardScaler, global_step: int, update: int, wall_s: float,
+          reward_rms: Any, global_step: int, update: int, wall_s: float,
           max_speed: float) -> None:
     args_record = {k: v for k, v in asdict(args).items() if k not in ("config", "model")}
     save_checkpoint(path, {
@@ -411,7 +521,7 @@ def _save(path: Path, args: PPOArgs, model: ActorCritic, optimizer: torch.optim.
         "model": model.state_dict(),
         "model_config": model.config.to_dict(),
         "optimizer": optimizer.state_dict(),
-        "reward_scaler": scaler.state_dict(),
+        "reward_rms": _rms_state(reward_rms),
         "global_step": global_step,
         "update": update,
         "wall_s": wall_s,
@@ -420,4 +530,4 @@ def _save(path: Path, args: PPOArgs, model: ActorCritic, optimizer: torch.optim.
     })
 
 
-__all__ = ["PPOArgs", "plot_learning_curve", "train"]
+__all__ = ["TASK_DEFAULTS", "Interrupted", "PPOArgs", "plot_learning_curve", "ppo_args", "train"]

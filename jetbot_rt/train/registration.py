@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-ENV_IDS = {"JetbotForward-v0": "forward"}
+ENV_IDS = {"JetbotForward-v0": "forward", "JetbotSeek-v0": "seek"}
 
 
 def register_envs() -> None:

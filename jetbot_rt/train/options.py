@@ -1,0 +1,123 @@
+"""``PPOArgs`` on the command line and in a ``[train]`` TOML table: one flag per field, its
+help the field's docstring, its default the dataclass's (and the task's, where it differs).
+
+Precedence: ``PPOArgs`` defaults < ``TASK_DEFAULTS[task]`` < the ``[train]`` table of
+``--config`` < flags given on the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import inspect
+import itertools
+import textwrap
+from typing import Any
+
+SKIPPED = ("task", "config", "model")
+"""Fields with flags of their own: ``--task``, ``--config``; ``model`` as ``--model-*``."""
+ALIASES = {"total_timesteps": ("--timesteps",)}
+OPTIONAL_VALUE = {"ray": {"nargs": "?", "const": "local", "metavar": "ADDRESS"}}
+"""Flags whose value may be left out (``--ray`` alone: Ray on this machine)."""
+SIGNED_INTS = ("seed", "workers")
+"""Integer fields that may be zero or negative (checked where they are used); every other
+one must be > 0."""
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Attribute docstrings (the string literal after each field) of a dataclass."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs: dict[str, str] = {}
+    for node, following in itertools.pairwise(body):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                and isinstance(following, ast.Expr)
+                and isinstance(following.value, ast.Constant)
+                and isinstance(following.value.value, str)):
+            docs[node.target.id] = " ".join(following.value.value.split())
+    return docs
+
+
+def _default(spec: dataclasses.Field) -> Any:
+    if spec.default is not dataclasses.MISSING:
+        return spec.default
+    if spec.default_factory is not dataclasses.MISSING:
+        return spec.default_factory()
+    return None
+
+
+def _help(doc: str, default: Any, per_task: dict[str, Any]) -> str:
+    text = doc.replace("``", "").replace("%", "%%")
+    shown = [f"default {default!r}" if not isinstance(default, str) else f"default {default}"]
+    shown += [f"{task}: {value}" for task, value in per_task.items()]
+    return f"{text} ({'; '.join(shown)})"
+
+
+def _add(group: argparse._ArgumentGroup, flags: list[str], dest: str, spec: dataclasses.Field,
+         doc: str, per_task: dict[str, Any]) -> None:
+    default = _default(spec)
+    kwargs: dict[str, Any] = {"dest": dest, "default": argparse.SUPPRESS,
+                              "help": _help(doc, default, per_task)}
+    annotation = str(spec.type)
+    if dest in OPTIONAL_VALUE:
+        kwargs.update(OPTIONAL_VALUE[dest])
+    elif annotation == "bool":
+        kwargs["action"] = argparse.BooleanOptionalAction
+    elif annotation.startswith("tuple[int"):
+        kwargs.update(type=positive_int, nargs=len(default), metavar="N")
+    else:
+        base = annotation.replace(" | None", "")
+        integer = int if dest in SIGNED_INTS else positive_int
+        kwargs["type"] = {"int": integer, "float": float}.get(base, str)
+        kwargs["metavar"] = dest.split(".")[-1].upper()
+    group.add_argument(*flags, **kwargs)
+
+
+def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
+    """One ``--field-name`` per ``PPOArgs`` field and ``--model-name`` per ``ModelConfig``."""
+    from jetbot_rt.train.model import ModelConfig
+    from jetbot_rt.train.ppo import TASK_DEFAULTS, PPOArgs
+
+    group = parser.add_argument_group("PPO options (also settable in a [train] table)")
+    docs = field_docs(PPOArgs)
+    for spec in dataclasses.fields(PPOArgs):
+        if spec.name in SKIPPED:
+            continue
+        per_task = {t: d[spec.name] for t, d in TASK_DEFAULTS.items() if spec.name in d}
+        flags = ["--" + spec.name.replace("_", "-"), *ALIASES.get(spec.name, ())]
+        _add(group, flags, spec.name, spec, docs.get(spec.name, ""), per_task)
+    model_group = parser.add_argument_group("network options (a [train.model] table)")
+    model_docs = field_docs(ModelConfig)
+    for spec in dataclasses.fields(ModelConfig):
+        per_task = {t: d["model"][spec.name] for t, d in TASK_DEFAULTS.items()
+                    if spec.name in d.get("model", {})}
+        _add(model_group, ["--model-" + spec.name.replace("_", "-")], "model." + spec.name,
+             spec, model_docs.get(spec.name, ""), per_task)
+
+
+def overrides(namespace: argparse.Namespace, table: dict[str, Any] | None) -> dict[str, Any]:
+    """The ``[train]`` table updated with the flags given on the command line."""
+    from jetbot_rt.train.ppo import PPOArgs
+
+    names = {f.name for f in dataclasses.fields(PPOArgs)} - set(SKIPPED)
+    result: dict[str, Any] = {k: v for k, v in (table or {}).items() if k != "model"}
+    model: dict[str, Any] = dict((table or {}).get("model", {}))
+    for key, value in vars(namespace).items():
+        if key.startswith("model."):
+            model[key[len("model."):]] = value
+        elif key in names:
+            result[key] = value
+    if model:
+        result["model"] = model
+    return result

@@ -1,0 +1,121 @@
+"""The trainer's reward shaping as Gymnasium wrappers (cleanrl's ``make_env`` style).
+
+The registered envs return the task's own reward (what ``eval`` reports); everything a
+trainer adds to learn faster lives here, so any trainer (ours, Stable-Baselines3) can reuse
+it. Per env: ``RecordEpisodeStatistics`` (the true return, in ``info["episode"]``), an
+optional ``symlog`` of the task reward, potential-based progress and aim shaping, and a bonus
+/ penalty on the step that succeeds / fails. Reward normalisation (running std of the
+discounted return) and clipping are vector wrappers, see ``normalize_rewards``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, SupportsFloat
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.wrappers import RecordEpisodeStatistics, TransformReward
+
+from jetbot_rt.config import Config
+from jetbot_rt.errors import UsageError
+from jetbot_rt.train.env import JetbotEnv
+
+REWARD_TRANSFORMS = ("symlog", "none")
+
+
+def symlog(reward: SupportsFloat) -> float:
+    """``sign(r) ln(1 + |r|)``: compresses the seed reward's -27 .. 2e4 into -3.3 .. 10."""
+    r = float(reward)
+    return float(np.sign(r) * np.log1p(abs(r)))
+
+
+class PotentialShaping(gym.Wrapper):
+    """Adds ``coef * (phi - phi')`` per step, ``phi = info[key]`` (a distance to shrink).
+
+    Potential-based (Ng et al. 1999): it sums to ``coef * (phi_start - phi_end)`` over an
+    episode, so it cannot be farmed by going back and forth, and it does not change which
+    policy is optimal. ``phi`` is privileged sim state, used only in the reward: the policy
+    still sees only the camera.
+    """
+
+    def __init__(self, env: gym.Env, key: str, coef: float) -> None:
+        super().__init__(env)
+        self.key = key
+        self.coef = coef
+        self._last = 0.0
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        self._last = float(info[self.key])
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        value = float(info[self.key])
+        reward = float(reward) + self.coef * (self._last - value)
+        self._last = value
+        return obs, reward, terminated, truncated, info
+
+
+class OutcomeBonus(gym.Wrapper):
+    """Adds ``success_bonus`` on a step whose ``info["is_success"]`` ends the episode and
+    subtracts ``fail_penalty`` on a step whose ``info["failed"]`` does."""
+
+    def __init__(self, env: gym.Env, success_bonus: float, fail_penalty: float) -> None:
+        super().__init__(env)
+        self.success_bonus = success_bonus
+        self.fail_penalty = fail_penalty
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        reward = float(reward)
+        if terminated and info.get("is_success"):
+            reward += self.success_bonus
+        if terminated and info.get("failed"):
+            reward -= self.fail_penalty
+        return obs, reward, terminated, truncated, info
+
+
+@dataclass(frozen=True)
+class Shaping:
+    """What ``make_train_env`` adds to the task's reward (``PPOArgs`` holds the same fields)."""
+
+    reward_transform: str = "symlog"
+    shaping_coef: float = 0.0
+    aim_coef: float = 0.0
+    success_bonus: float = 0.0
+    fail_penalty: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.reward_transform not in REWARD_TRANSFORMS:
+            raise UsageError(f"unknown reward transform {self.reward_transform!r} "
+                             f"(known: {', '.join(REWARD_TRANSFORMS)})")
+
+
+def make_train_env(task: str, config: Config | None, shaping: Shaping,
+                   **env_kwargs: Any) -> gym.Env:
+    """The task's env with the trainer's reward; a module-level function, so it pickles
+    for ``AsyncVectorEnv`` (one PyBullet client per worker)."""
+    env: gym.Env = JetbotEnv(task, config, **env_kwargs)
+    env = RecordEpisodeStatistics(env)
+    if shaping.reward_transform == "symlog":
+        env = TransformReward(env, symlog)
+    if shaping.shaping_coef:
+        env = PotentialShaping(env, "distance", shaping.shaping_coef)
+    if shaping.aim_coef:
+        env = PotentialShaping(env, "aim_error", shaping.aim_coef)
+    if shaping.success_bonus or shaping.fail_penalty:
+        env = OutcomeBonus(env, shaping.success_bonus, shaping.fail_penalty)
+    return env
+
+
+def normalize_rewards(envs: gym.vector.VectorEnv, gamma: float, clip: float
+                      ) -> tuple[gym.vector.VectorEnv, Any]:
+    """Divide by the running std of the discounted return, then clip to +-``clip``.
+    Returns the wrapped env and the ``NormalizeReward`` wrapper (its ``return_rms`` is the
+    state a checkpoint keeps)."""
+    from gymnasium.wrappers.vector import ClipReward, NormalizeReward
+
+    normalizer = NormalizeReward(envs, gamma=gamma)
+    return ClipReward(normalizer, -clip, clip), normalizer
