@@ -59,6 +59,7 @@ OUT_OF_RANGE = {
     ("sim", "motor_gain"): 0,
     ("sim", "motor_tau"): -0.05,
     ("sim", "seed"): None,  # any integer is a seed
+    ("sim", "task"): None,  # any name: an unknown task is refused when the scene is built
     ("sim", "camera_stall_after"): 0,
     ("sim", "blackout"): [2.0, 1.0],
     ("sim", "supersample"): 5,
