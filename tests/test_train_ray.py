@@ -45,26 +45,56 @@ def test_without_ray_flag_ray_is_never_imported():
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
 
 
-def test_one_node_trains_and_matches_the_in_process_run(tmp_path):
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        summary = train(small_run(tmp_path / "ray", 2, ray="local", workers=2))
-    finally:
-        ray.shutdown()
-    out = Path(summary["policy"]).parent
-    assert summary["global_step"] == 2 * 2 * NUM_STEPS
-    rows = metrics(out)
-    assert [r["global_step"] for r in rows] == ["64", "128"]
-    assert [r["worker_restarts"] for r in rows] == ["0", "0"]
-    session = ort.InferenceSession(summary["policy"], providers=["CPUExecutionProvider"])
-    assert session.get_modelmeta().custom_metadata_map["jetbot_rt.task"] == "forward"
+@pytest.fixture(scope="class")
+def one_node():
+    """Ray on this machine with 2 CPUs, shared by the tests of one class (the two-node test
+    needs it gone)."""
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
 
-    local = train(small_run(tmp_path / "local", 2, workers=0))
-    ray_state = torch.load(summary["checkpoint"], weights_only=True)["model"]
-    local_state = torch.load(local["checkpoint"], weights_only=True)["model"]
-    assert ray_state.keys() == local_state.keys()
-    for name, tensor in ray_state.items():
-        assert torch.equal(tensor, local_state[name]), name
+
+class TestOneNode:
+    def test_trains_and_matches_the_in_process_run(self, tmp_path, one_node):
+        summary = train(small_run(tmp_path / "ray", 2, ray="local", workers=2))
+        out = Path(summary["policy"]).parent
+        assert summary["global_step"] == 2 * 2 * NUM_STEPS
+        rows = metrics(out)
+        assert [r["global_step"] for r in rows] == ["64", "128"]
+        assert [r["worker_restarts"] for r in rows] == ["0", "0"]
+        session = ort.InferenceSession(summary["policy"], providers=["CPUExecutionProvider"])
+        assert session.get_modelmeta().custom_metadata_map["jetbot_rt.task"] == "forward"
+
+        local = train(small_run(tmp_path / "local", 2, workers=0))
+        ray_state = torch.load(summary["checkpoint"], weights_only=True)["model"]
+        local_state = torch.load(local["checkpoint"], weights_only=True)["model"]
+        assert ray_state.keys() == local_state.keys()
+        for name, tensor in ray_state.items():
+            assert torch.equal(tensor, local_state[name]), name
+
+
+    def test_sweep_trains_each_seed_and_writes_one_table(self, tmp_path, one_node):
+        from jetbot_rt.train.cli import build_parser
+        from jetbot_rt.train.sweep import COLUMNS, sweep
+
+        out = tmp_path / "sweep"
+        args = build_parser().parse_args([
+            "sweep", "--timesteps", "128", "--num-envs", "1", "--seeds", "4", "7",
+            "--eval-episodes", "1", "--out", str(out)])
+        rows = sweep(args)
+        assert [(r["trial"], r["seed"]) for r in rows] == [("default-seed4", 4),
+                                                           ("default-seed7", 7)]
+        for row in rows:
+            assert row["global_step"] == 128 and 0.0 <= row["eval_success_rate"] <= 1.0
+            assert (out / row["trial"] / "policy.onnx").stat().st_size > 0
+            assert (out / row["trial"] / "checkpoint.pt").stat().st_size > 0
+        with (out / "sweep.csv").open() as handle:
+            table = list(csv.DictReader(handle))
+        assert tuple(table[0]) == COLUMNS and [r["seed"] for r in table] == ["4", "7"]
+        # The two seeds trained different networks.
+        first, second = (torch.load(out / r["trial"] / "checkpoint.pt", weights_only=True)["model"]
+                         for r in rows)
+        assert any(not torch.equal(first[k], second[k]) for k in first)
 
 
 def test_a_killed_worker_node_does_not_end_the_run(tmp_path, capfd):

@@ -15,7 +15,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from jetbot_rt.cli import OneLineParser, plain
+from jetbot_rt.cli import HelpFormatter, OneLineParser, plain
 from jetbot_rt.errors import EXIT_OK, EXIT_USAGE, UsageError
 
 TRAIN_EXTRA_MODULES = ("torch", "onnx", "gymnasium", "matplotlib", "tqdm", "pybullet")
@@ -32,8 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     from jetbot_rt.sim.tasks import TASKS
     from jetbot_rt.train.evaluate import ABLATIONS
     from jetbot_rt.train.options import add_ppo_arguments, positive_int
+    from jetbot_rt.train.sweep import add_parser as add_sweep_parser
 
-    formatter = argparse.ArgumentDefaultsHelpFormatter
+    formatter = HelpFormatter  # defaults shown, never "(default: None)"
     parser = OneLineParser(prog="jetbot-train", description=plain(__doc__.splitlines()[0]),
                            epilog=_task_list())
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
@@ -84,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="record each episode into DIR/episode-<seed>/ as run --record "
                                "does (look at it with jetbot-rt report)")
     evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_sweep_parser(sub, tasks)
     return parser
 
 
@@ -171,7 +173,15 @@ def _eval(args: argparse.Namespace, argv: list[str]) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"train": _train, "export": _export, "eval": _eval}
+def _sweep(args: argparse.Namespace, argv: list[str]) -> int:
+    from jetbot_rt.train.sweep import sweep
+
+    sweep(args)
+    print((Path(args.out) / "sweep.md").read_text(), end="")
+    return EXIT_OK
+
+
+COMMANDS = {"train": _train, "export": _export, "eval": _eval, "sweep": _sweep}
 
 
 def missing_extra() -> list[str]:

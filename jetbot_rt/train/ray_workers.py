@@ -6,7 +6,8 @@ contiguous block of env indices. Each step the driver sends every actor its bloc
 and gathers the results in worker-index order, so a seeded run does not depend on which actor
 answers first. The learner (and the policy's forward pass, batched over all envs, on CUDA when
 there is one) stays in the driver; what crosses the wire per step is the actions (8 bytes an
-env) one way and the 64x64x3 uint8 frame (12 KiB an env) plus rewards and infos the other.
+env) one way and the frame at the policy's size (56x56x3 uint8: 9.4 KiB an env) plus rewards
+and infos the other.
 Replies under Ray's inline limit (100 KiB) ride on the RPC itself; larger ones go through the
 object store, shared memory on one node. docs/TRAINING.md says why per step and not whole
 rollouts per update.
@@ -116,10 +117,8 @@ def connect(address: str) -> bool:
     ray = _import_ray()
     if ray.is_initialized():
         return False
-    kwargs: dict[str, Any] = {"log_to_driver": False}
-    if address != "local":
-        kwargs["address"] = address
-    else:
+    kwargs: dict[str, Any] = {"address": address, "log_to_driver": False}
+    if address == "local":  # a new Ray of our own, even if this machine has a cluster running
         kwargs["include_dashboard"] = False
     try:
         ray.init(**kwargs)
