@@ -90,7 +90,7 @@ def sweep(namespace: argparse.Namespace) -> list[dict[str, Any]]:
     _prepare_out(out)
     paths = namespace.config or [None]
     configs = [(Path(p).stem if p else "default", *_load_train_config(p)) for p in paths]
-    if len({name for name, _ in configs}) != len(configs):
+    if len({name for name, _, _ in configs}) != len(configs):
         raise UsageError("--config files must have different names (they name the trials)")
     owns = connect(namespace.ray)
     import ray
