@@ -119,6 +119,10 @@ _FULL = ("the full-on or full-off bit is set: the PCA9685 ignores the counts the
          "7.3.3), so another count below 0x100 changes no output")
 _RESHAPE = "mu = np.asarray(output, dtype=np.float64).reshape(-1)"
 EQUIVALENT = [
+    Equivalent("jetbot_rt/hal/motors.py",
+               "mode1 = self.bus.transfer(self.address, [payload, bytes((MODE1,))], read=1)",
+               ("mode1 = self.bus.transfer(self.address, [payload, bytes((MODE1,))], read=2)",),
+               "reading MODE2 after MODE1 changes nothing: only mode1[0] is used"),
     Equivalent("jetbot_rt/hal/motors.py", "if TYPE_CHECKING:", ("if not TYPE_CHECKING:",),
                "the type-only import also works at run time (no import cycle)"),
     Equivalent("jetbot_rt/policy.py", _RESHAPE,
@@ -459,9 +463,12 @@ def main() -> int:
     parser.add_argument("--reclassify", action="store_true",
                         help="re-apply EQUIVALENT to the results in --out and rewrite them; "
                              "runs nothing")
+    parser.add_argument("--retest", action="store_true",
+                        help="with --reclassify: run the survivors again against the tests "
+                             "as they are now")
     args = parser.parse_args()
     if args.reclassify:
-        reclassify(Path(args.out))
+        reclassify(Path(args.out), args.retest, args.jobs)
         return 0
 
     t_start = time.monotonic()
@@ -548,8 +555,10 @@ def main() -> int:
     return 0
 
 
-def reclassify(path: Path) -> None:
-    """Equivalent-mutant decisions made after a run, applied to its recorded results."""
+def reclassify(path: Path, retest: bool = False, jobs: int = 2) -> None:
+    """Equivalent-mutant decisions made after a run, applied to its recorded results; with
+    ``retest``, the survivors run again against the tests as they are now (tests added for
+    survivors after the run; the product code must be the same)."""
     old = json.loads(path.read_text())
     mutants = [Mutant(**m) for m in old["mutants"]]
     for mutant in mutants:
@@ -557,6 +566,26 @@ def reclassify(path: Path) -> None:
             reason = equivalent_reason(mutant)
             mutant.outcome = "equivalent" if reason else "survived"
             mutant.equivalent_reason = reason
+    if retest:
+        LEFT_OUT.extend(old.get("tests_left_out", []))
+        for module in MODULES:
+            MODULES[module] = tuple(  # type: ignore[assignment]
+                [t for t in stage if t not in LEFT_OUT] for stage in MODULES[module])
+        survivors = [m for m in mutants if m.outcome == "survived"]
+        base = Path(tempfile.mkdtemp(prefix="jetbot-rt-mutation-"))
+        try:
+            copies = [make_worker(base, i) for i in range(jobs)]
+            timeouts = {"fast": 120.0, "slow": 400.0}
+            with concurrent.futures.ThreadPoolExecutor(jobs) as pool:
+                list(pool.map(lambda i: [run_mutant(copies[i], m, timeouts)
+                                         for m in survivors[i::jobs]], range(jobs)))
+        finally:
+            shutil.rmtree(base, ignore_errors=True)
+        for mutant in survivors:
+            if mutant.outcome != "survived":
+                mutant.stage += " (retest)"
+        print(f"retested {len(survivors)} survivors: "
+              f"{sum(m.outcome != 'survived' for m in survivors)} killed now", flush=True)
     args = argparse.Namespace(seed=old["seed"], per_module=old["per_module"], jobs=old["jobs"],
                               out=str(path))
     population = {m: v["population"] for m, v in old["modules"].items()}

@@ -237,3 +237,11 @@ class TestActionCountWithASymbolicBatch:
         policy = OnnxPolicy.load(tmp_path / "m.onnx")
         with pytest.raises(Fault, match=f"policy gave {values} action values, expected 2"):
             policy.infer(np.zeros((32, 32, 3), np.uint8))
+
+
+@pytest.mark.parametrize("stated", ["NWHC", "nhwc", "HWC"])
+def test_a_metadata_layout_that_is_not_one_is_refused_unless_config_overrides(tmp_path, stated):
+    path = channel_probe(tmp_path / "p.onnx", metadata={"jetbot_rt.layout": stated})
+    with pytest.raises(UsageError, match=f"layout = '{stated}' is not one of NHWC, NCHW"):
+        OnnxPolicy.load(path)
+    assert OnnxPolicy.load(path, PolicyConfig(layout="NHWC")).spec.layout == "NHWC"
