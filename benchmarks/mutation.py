@@ -118,7 +118,13 @@ _DIM = "return value if isinstance(value, int) and value > 0 else None"
 _FULL = ("the full-on or full-off bit is set: the PCA9685 ignores the counts then (datasheet "
          "7.3.3), so another count below 0x100 changes no output")
 _RESHAPE = "mu = np.asarray(output, dtype=np.float64).reshape(-1)"
+_PRESCALE_SLEEP = ("bus.writeto(address, bytes((MODE1, MODE1_SLEEP | MODE1_AI)))  # PRE_SCALE "
+                   "needs SLEEP")
 EQUIVALENT = [
+    Equivalent("jetbot_rt/hal/motors.py", _PRESCALE_SLEEP,
+               tuple(_PRESCALE_SLEEP.replace("|", op) for op in ("^", "+", "%")),
+               "the byte keeps SLEEP (0x10), all PRE_SCALE needs; auto-increment matters to "
+               "none of the single-register writes that follow"),
     Equivalent("jetbot_rt/hal/motors.py",
                "mode1 = self.bus.transfer(self.address, [payload, bytes((MODE1,))], read=1)",
                ("mode1 = self.bus.transfer(self.address, [payload, bytes((MODE1,))], read=2)",),

@@ -147,3 +147,8 @@ def test_write_then_read_sends_the_whole_write(chip) -> None:
     bus.writeto_then_readfrom(0x60, bytes((MODE1, 0x31)), got)
     assert chip.registers[MODE1] == 0x31
     assert got[0] == chip.registers[MODE1 + 1]
+
+
+@pytest.mark.parametrize("address", [0x03, 0x60, 0x77])
+def test_scan_covers_every_7_bit_address_from_0x03_to_0x77(address) -> None:
+    assert I2CBus(PCA9685Emulator(address), 1).scan() == [address]
