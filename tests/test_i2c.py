@@ -152,3 +152,8 @@ def test_write_then_read_sends_the_whole_write(chip) -> None:
 @pytest.mark.parametrize("address", [0x03, 0x60, 0x77])
 def test_scan_covers_every_7_bit_address_from_0x03_to_0x77(address) -> None:
     assert I2CBus(PCA9685Emulator(address), 1).scan() == [address]
+
+
+@pytest.mark.parametrize("reserved", [0x00, 0x02, 0x78, 0x7F])
+def test_scan_never_probes_a_reserved_address(reserved) -> None:
+    assert I2CBus(PCA9685Emulator(reserved), 1).scan() == []

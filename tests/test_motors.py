@@ -256,3 +256,11 @@ def test_a_drive_whose_chip_was_put_to_sleep_faults_and_stays_off(chip, layout) 
     with pytest.raises(BoardAsleep):
         drive.write(0.5, 0.5)
     assert chip.sleeping and chip.all_off()
+
+
+def test_waveshare_setup_sets_totem_pole_outputs_whatever_mode2_held(chip) -> None:
+    from jetbot_rt.hal.pca9685_emulator import MODE2
+
+    chip.registers[MODE2] = 0x00  # open-drain, left by another program
+    WaveshareDrive(I2CBus(chip, 1), ADDR, 1600.0)
+    assert chip.registers[MODE2] == 0x04

@@ -160,3 +160,24 @@ class TestColourChannelsCounted:
         onnx.save(model, str(tmp_path / "m.onnx"))
         with pytest.raises(UsageError, match="expected 3 colour channels in NHWC input"):
             OnnxPolicy.load(tmp_path / "m.onnx", PolicyConfig(layout="NHWC"))
+
+
+class TestLayoutGuess:
+    @pytest.mark.parametrize("shape", [[1, 8, 8, 4], [1, 8, 8, 1], [1, 1, 8, 8], [1, 2, 8, 2]])
+    def test_no_guess_without_a_dimension_of_3(self, tmp_path: Path, shape: list[int]) -> None:
+        from jetbot_rt.errors import UsageError
+
+        graph = helper.make_graph(
+            [helper.make_node("ReduceMean", ["obs"], ["m"], axes=[2, 3], keepdims=0),
+             helper.make_node("Slice", ["m", "zero", "two", "one"], ["mu"])],
+            "guess", [helper.make_tensor_value_info("obs", TensorProto.FLOAT, shape)],
+            [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, None])],
+            [numpy_helper.from_array(np.array([0], np.int64), "zero"),
+             numpy_helper.from_array(np.array([2], np.int64), "two"),
+             numpy_helper.from_array(np.array([1], np.int64), "one")],
+        )
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+        model.ir_version = 8
+        onnx.save(model, str(tmp_path / "m.onnx"))
+        with pytest.raises(UsageError, match="cannot tell the image layout"):
+            OnnxPolicy.load(tmp_path / "m.onnx")
