@@ -259,7 +259,7 @@ def test_a_drive_whose_chip_was_put_to_sleep_faults_and_stays_off(chip, layout) 
 
 
 def test_waveshare_setup_sets_totem_pole_outputs_whatever_mode2_held(chip) -> None:
-    from jetbot_rt.hal.pca9685_emulator import MODE2
+    from jetbot_rt.testing.pca9685_emulator import MODE2
 
     chip.registers[MODE2] = 0x00  # open-drain, left by another program
     WaveshareDrive(I2CBus(chip, 1), ADDR, 1600.0)
