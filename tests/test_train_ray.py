@@ -103,31 +103,42 @@ def test_a_killed_worker_node_does_not_end_the_run(tmp_path, capfd):
     # Fast node-death detection: the default health check takes ~15 s to declare it.
     fast = {"health_check_initial_delay_ms": 0, "health_check_period_ms": 500,
             "health_check_failure_threshold": 2}
+    # Two actors of one CPU each on two one-CPU nodes: one must land on the victim (with a
+    # two-CPU head both could land there and nothing would be killed: seen in CI). A fresh
+    # node, added after the kill, gives the restarted actor room. Ray adds nodes only from
+    # the main thread, so training runs in a thread of its own.
     cluster = Cluster(initialize_head=True, head_node_args={
-        "num_cpus": 2, "include_dashboard": False, "_system_config": fast})
+        "num_cpus": 1, "include_dashboard": False, "_system_config": fast})
     victim = cluster.add_node(num_cpus=1)
     ray.init(address=cluster.address, log_to_driver=False)
     out = tmp_path / "run"
     killed: list[float] = []
+    result: dict = {}
 
-    def kill_after_first_update() -> None:
-        deadline = time.monotonic() + 300
-        while not (out / "metrics.csv").exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        cluster.remove_node(victim, allow_graceful=False)
-        killed.append(time.monotonic())
+    def training() -> None:
+        try:
+            result["summary"] = train(small_run(out, 3, ray="auto", workers=2))
+        except BaseException as exc:  # reported by the assertion below
+            result["error"] = exc
 
     try:
         cluster.wait_for_nodes()
-        killer = threading.Thread(target=kill_after_first_update, daemon=True)
-        killer.start()
-        # Two actors of one CPU each: one must land on the victim (the head has 2 CPUs, so
-        # the restarted actor finds room there).
-        summary = train(small_run(out, 3, ray="auto", workers=2))
-        killer.join(timeout=60)
+        trainer = threading.Thread(target=training, daemon=True)
+        trainer.start()
+        deadline = time.monotonic() + 300
+        while (not (out / "metrics.csv").exists() and trainer.is_alive()
+               and time.monotonic() < deadline):
+            time.sleep(0.05)
+        if trainer.is_alive():
+            cluster.remove_node(victim, allow_graceful=False)
+            killed.append(time.monotonic())
+            cluster.add_node(num_cpus=1)
+        trainer.join(timeout=300)
     finally:
         ray.shutdown()
         cluster.shutdown()
+    assert "error" not in result, result.get("error")
+    summary = result["summary"]
     assert killed, "the worker node was never killed"
     rows = metrics(out)
     assert [r["global_step"] for r in rows] == ["64", "128", "192"]
