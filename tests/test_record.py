@@ -17,7 +17,7 @@ import pytest
 from runner import JETBOT_RT, RuntimeProcess, run_cli
 
 from jetbot_rt.loop import TickResult
-from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
 from jetbot_rt.recorder import Recorder, sha256_of
 from jetbot_rt.recording import Recording
 
@@ -64,7 +64,8 @@ def test_sim_recording_holds_every_tick_and_replays_at_round_off(sim_run):
     assert summary["mu_max_abs_diff"] <= 1e-6 and summary["same_policy"]
     # the frames are what the camera saw: the robot drove, the view changed
     images = [image for _, image in recording.ticks_with_frames()]
-    assert all(image.shape == (224, 224, 3) for image in images)
+    spec = OnnxPolicy.load(bundled_policy_path()).spec  # the sim renders at the policy's size
+    assert all(image.shape == (spec.height, spec.width, 3) for image in images)
     assert np.abs(images[0].astype(int) - images[-1]).mean() > 1.0
 
 

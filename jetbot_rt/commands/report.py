@@ -19,7 +19,7 @@ import numpy as np
 from jetbot_rt.errors import EXIT_OK, UsageError
 from jetbot_rt.recording import Recording
 
-SCALE = 2  # the 224x224 frames are shown at 448x448
+DISPLAY_WIDTH = 448  # frames are enlarged by a whole factor to about this width (56 px by 8)
 PANEL = 120  # px of text and bars under the frame
 STOP_HOLD_S = 1.5  # the last frame with the stop marker stays this long at the end
 
@@ -176,7 +176,8 @@ def _bar(canvas: np.ndarray, x: int, y: int, value: float, label: str,
 def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
             stop: dict[str, Any] | None) -> np.ndarray:
     """One video frame (BGR): the frame enlarged, and a panel with the tick's numbers."""
-    height, width = image.shape[0] * SCALE, image.shape[1] * SCALE
+    scale = max(1, round(DISPLAY_WIDTH / image.shape[1]))
+    height, width = image.shape[0] * scale, image.shape[1] * scale
     canvas = np.zeros((height + PANEL, width, 3), np.uint8)
     canvas[:height] = cv2.resize(image[:, :, ::-1], (width, height),
                                  interpolation=cv2.INTER_NEAREST)

@@ -8,9 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 
 DEFAULT_FRAME_SIZE = (224, 224)
-"""(width, height) of camera frames where no policy says otherwise: the input of the first
-bundled policy (forward.onnx). A run takes the size from its policy's ONNX input; the trainer's
-size is ``jetbot_rt.train.env.POLICY_IMAGE_SIZE``."""
+"""(width, height) of camera frames where no policy says otherwise (the null camera, a bare
+``JetbotWorld``, ``check`` without a policy): the rl_games layout's size, that of the first
+bundled policy before it was re-exported at 56x56. A run takes the size from its policy's ONNX
+input; the trainer's size is ``jetbot_rt.train.env.POLICY_IMAGE_SIZE``."""
 
 
 @dataclass(frozen=True)
