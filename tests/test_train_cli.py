@@ -33,6 +33,10 @@ METADATA = {
 }
 
 
+SMOKE = ("train", "--task", "forward", "--timesteps", "256", "--num-envs", "1", "--workers", "0",
+         "--seed", "3", "--no-progress")
+
+
 def train_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     return subprocess.run([JETBOT_TRAIN, *args], capture_output=True, text=True, timeout=timeout)
 
@@ -40,8 +44,7 @@ def train_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("smoke")
-    result = train_cli("train", "--task", "forward", "--timesteps", "256", "--num-envs", "1",
-                       "--workers", "0", "--out", str(out), "--seed", "3", "--no-progress")
+    result = train_cli(*SMOKE, "--out", str(out))
     assert result.returncode == 0, result.stderr
     return out
 
@@ -53,6 +56,17 @@ def test_smoke_training_writes_checkpoint_onnx_metrics_and_curve(smoke_run):
     assert rows[0].startswith("update,global_step,wall_s,steps_per_s")
     assert [r.split(",")[1] for r in rows[1:]] == ["128", "256"]
     assert (smoke_run / "policy.onnx").stat().st_size < 2_000_000
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the default device is CUDA here")
+def test_device_cpu_trains_the_same_weights_as_the_default(smoke_run, tmp_path):
+    result = train_cli(*SMOKE, "--out", str(tmp_path), "--device", "cpu")
+    assert result.returncode == 0, result.stderr
+    default = torch.load(smoke_run / "checkpoint.pt", weights_only=True)
+    on_cpu = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert on_cpu["args"]["device"] == "cpu" and default["args"]["device"] == "auto"
+    for name, tensor in default["model"].items():
+        assert torch.equal(tensor, on_cpu["model"][name]), name
 
 
 def test_runtime_loads_and_drives_the_trained_onnx(smoke_run, tmp_path, monkeypatch):
@@ -170,6 +184,21 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run):
     ]
     for args, needle in cases:
         _one_line_exit_2(train_cli(*args), needle)
+
+
+def test_bad_device_or_restarts_is_one_line_and_exit_2_before_training(tmp_path, capsys):
+    from jetbot_rt.train.cli import main
+
+    cases = [(["--device", "gpu"], "--device must be auto, cpu, cuda or cuda:N"),
+             (["--ray-max-restarts", "-1"], "--ray-max-restarts must be >= 0")]
+    if not torch.cuda.is_available():  # CUDA asked for on a machine without it
+        cases.append((["--device", "cuda"], "--device cuda: CUDA is not available"))
+    for flags, needle in cases:
+        out = tmp_path / flags[1]
+        assert main(["train", *flags, "--out", str(out)]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and needle in lines[0], lines
+        assert not out.exists()  # refused before anything was written or started
 
 
 def test_help_lists_the_tasks_and_shows_defaults():

@@ -10,6 +10,9 @@ restart counted in metrics.csv.
 from __future__ import annotations
 
 import csv
+import os
+import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -43,6 +46,44 @@ def test_without_ray_flag_ray_is_never_imported():
     code = ("import sys, jetbot_rt.train.cli, jetbot_rt.train.ppo; "
             "sys.exit('ray' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
+
+
+def test_a_bad_ray_address_is_one_line_and_exit_2(tmp_path, capsys):
+    from jetbot_rt.train.cli import main
+
+    with socket.socket() as unused:  # a port nothing listens on
+        unused.bind(("127.0.0.1", 0))
+        port = unused.getsockname()[1]
+    for address, needle in ((f"127.0.0.1:{port}", "no Ray head answers there"),
+                            ("nonsense", "expected local, auto, HOST:PORT")):
+        assert main(["train", "--ray", address, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], err
+    assert not ray.is_initialized()
+
+
+def descendants_named(title: str) -> list[int]:
+    """Processes below this one whose command line starts with ``title`` (Ray names an actor's
+    process ``ray::ClassName``)."""
+    parents: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text()
+            parents[int(entry.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+        except (ValueError, OSError):
+            continue
+    found = []
+    for pid in parents:
+        ancestor = parents.get(pid)
+        while ancestor and ancestor != os.getpid():
+            ancestor = parents.get(ancestor)
+        if ancestor:
+            try:
+                if (Path("/proc") / str(pid) / "cmdline").read_bytes().startswith(title.encode()):
+                    found.append(pid)
+            except OSError:
+                pass
+    return found
 
 
 @pytest.fixture(scope="class")
@@ -97,6 +138,34 @@ class TestOneNode:
         assert any(not torch.equal(first[k], second[k]) for k in first)
 
 
+    def test_workers_lost_beyond_restarts_is_one_line_exit_75_and_a_checkpoint(
+            self, tmp_path, one_node, capsys):
+        from jetbot_rt.train.cli import main
+
+        out = tmp_path / "lost"
+        argv = ["train", "--ray", "--workers", "2", "--num-envs", "2", "--num-steps", "32",
+                "--timesteps", "100000", "--update-epochs", "1", "--ray-max-restarts", "0",
+                "--out", str(out), "--no-progress"]
+        result: dict = {}
+        trainer = threading.Thread(target=lambda: result.update(rc=main(argv)), daemon=True)
+        trainer.start()
+        deadline = time.monotonic() + 300
+        while not (out / "metrics.csv").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        workers = descendants_named("ray::EnvWorker")
+        assert workers, "no env worker process found"
+        os.kill(workers[0], signal.SIGKILL)
+        trainer.join(timeout=300)
+        assert result.get("rc") == 75, result
+        err = capsys.readouterr().err
+        assert "Traceback" not in err
+        last = err.strip().splitlines()[-1]
+        assert last.startswith("jetbot-train train: error: Ray env worker") and "died" in last
+        assert last.endswith("--resume") and str(out / "checkpoint.pt") in last
+        state = torch.load(out / "checkpoint.pt", weights_only=True)
+        assert state["global_step"] >= 64 and (out / "policy.onnx").stat().st_size > 0
+
+
 def test_a_killed_worker_node_does_not_end_the_run(tmp_path, capfd):
     from ray.cluster_utils import Cluster
 
@@ -147,3 +216,4 @@ def test_a_killed_worker_node_does_not_end_the_run(tmp_path, capfd):
     assert Path(summary["policy"]).stat().st_size > 0
     assert Path(summary["checkpoint"]).stat().st_size > 0
     assert "lost; restart 1 of at most" in capfd.readouterr().err
+

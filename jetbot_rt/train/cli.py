@@ -1,8 +1,10 @@
 """``jetbot-train``: train a policy in the sim, export a checkpoint to ONNX, evaluate a policy.
 
 Bad input (unknown task, missing or foreign checkpoint, non-positive counts, an output path
-that cannot be written) is one line on stderr and exit code 2. Without the ``train`` extra
-installed, one line naming it, exit code 2.
+that cannot be written, ``--device cuda`` without CUDA) is one line on stderr and exit code 2.
+Without the ``train`` extra installed, one line naming it, exit code 2. Ctrl-C: checkpoint,
+resume command, exit 130. ``--ray`` env workers lost beyond their restarts: one line, the
+checkpoint written if an update had finished, exit 75.
 """
 
 from __future__ import annotations
@@ -20,6 +22,9 @@ from jetbot_rt.errors import EXIT_OK, EXIT_USAGE, UsageError
 
 TRAIN_EXTRA_MODULES = ("torch", "onnx", "gymnasium", "matplotlib", "tqdm", "pybullet")
 EXIT_INTERRUPTED = 130
+EXIT_WORKERS_LOST = 75
+"""``--ray``: env workers lost beyond their restarts (sysexits' EX_TEMPFAIL: try again later,
+with ``--resume`` when a checkpoint was written)."""
 
 
 def _task_list() -> str:
@@ -116,6 +121,7 @@ def _resume_command(argv: list[str]) -> str:
 def _train(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.train.options import overrides
     from jetbot_rt.train.ppo import Interrupted, ppo_args, train
+    from jetbot_rt.train.ray_workers import WorkersLost
 
     config, table = _load_train_config(args.config)
     ppo = ppo_args(args.task, overrides(args, table))
@@ -128,6 +134,12 @@ def _train(args: argparse.Namespace, argv: list[str]) -> int:
               f"{summary['policy']} and the learning curve. Resume with:\n"
               f"  {_resume_command(argv)}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except WorkersLost as lost:
+        saved = lost.summary
+        tail = (f"wrote {saved['checkpoint']} at {saved['global_step']} steps; resume with: "
+                f"{_resume_command(argv)}" if saved else "no update had finished, nothing saved")
+        print(f"jetbot-train train: error: {lost}; {tail}", file=sys.stderr)
+        return EXIT_WORKERS_LOST
     print(f"trained {summary['global_step']} steps in {summary['wall_s']:.0f} s "
           f"({summary['steps_per_s']} steps/s); checkpoint {summary['checkpoint']}, "
           f"policy {summary['policy']}")

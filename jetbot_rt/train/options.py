@@ -20,7 +20,7 @@ SKIPPED = ("task", "config", "model")
 ALIASES = {"total_timesteps": ("--timesteps",)}
 OPTIONAL_VALUE = {"ray": {"nargs": "?", "const": "local", "metavar": "ADDRESS"}}
 """Flags whose value may be left out (``--ray`` alone: Ray on this machine)."""
-SIGNED_INTS = ("seed", "workers")
+SIGNED_INTS = ("seed", "workers", "ray_max_restarts")
 """Integer fields that may be zero or negative (checked where they are used); every other
 one must be > 0."""
 

@@ -37,9 +37,11 @@ from jetbot_rt.train.checkpoint import (
     model_from_checkpoint,
     save_checkpoint,
 )
+from jetbot_rt.train.device import resolve_device, to_cpu
 from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.export import export_model
 from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.ray_workers import WorkersLost
 from jetbot_rt.train.wrappers import Shaping, make_train_env, normalize_rewards
 
 METRICS_NAME = "metrics.csv"
@@ -85,6 +87,13 @@ class PPOArgs:
     """Env workers as actors on a Ray cluster (``ray_workers.py``): "local" starts Ray on this
     machine, "auto" joins the cluster this machine is part of, HOST:PORT or ray://HOST:PORT
     another; None (default): no Ray, not even imported."""
+    ray_max_restarts: int = 3
+    """With ``ray``: how many times Ray restarts each env worker (its process or node lost)
+    before the run gives up (checkpoint kept, exit 75). Raise it on preemptible nodes."""
+    device: str = "auto"
+    """Where the learner (network, rollout buffers, optimizer, the rollout's forward pass)
+    runs: "auto" (CUDA when torch sees a GPU, else the CPU), "cpu", "cuda" or "cuda:N". Env
+    workers and Ray actors never see it: actions go to them as CPU numpy."""
     out: str = "runs/forward"
     """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
     config: Config = field(default_factory=Config)
@@ -259,7 +268,8 @@ def make_vector_env(args: PPOArgs, image_size: int) -> tuple[VectorEnv, Any]:
     if args.ray is not None:
         from jetbot_rt.train.ray_workers import RayVectorEnv
 
-        envs = RayVectorEnv(factories, address=args.ray, workers=args.workers)
+        envs = RayVectorEnv(factories, address=args.ray, workers=args.workers,
+                            max_restarts=args.ray_max_restarts)
         return normalize_rewards(envs, args.gamma, args.reward_clip)
     if args.workers == 0:
         envs = SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
@@ -300,8 +310,11 @@ def train(args: PPOArgs) -> dict[str, Any]:
     if args.ray is None and args.workers not in (None, 0, args.num_envs):
         raise UsageError(f"--workers must be 0 (envs in this process) or --num-envs "
                          f"({args.num_envs}, one process each), got {args.workers}")
+    if args.ray_max_restarts < 0:
+        raise UsageError(f"--ray-max-restarts must be >= 0, got {args.ray_max_restarts}")
     get_task(args.task)
     _ = args.shaping  # validates reward_transform before any worker starts
+    device = resolve_device(args.device)
     out = Path(args.out)
     _prepare_out(out)
     checkpoint_path = out / CHECKPOINT_NAME
@@ -313,6 +326,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
     model = ActorCritic(args.model)
     if args.init:
         model = model_from_checkpoint(load_checkpoint(args.init)).train()
+    model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate, eps=1e-5)
     global_step, update, wall_before = 0, 0, 0.0
     resume_state: dict[str, Any] | None = None
@@ -321,7 +335,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
         if resume_state["task"] != args.task:
             raise UsageError(f"{checkpoint_path} is for task {resume_state['task']!r}, "
                              f"not {args.task!r}")
-        model = model_from_checkpoint(resume_state).train()
+        model = model_from_checkpoint(resume_state).train().to(device)
         optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate, eps=1e-5)
         optimizer.load_state_dict(resume_state["optimizer"])
         global_step, update = resume_state["global_step"], resume_state["update"]
@@ -342,12 +356,12 @@ def train(args: PPOArgs) -> dict[str, Any]:
     with torch.no_grad():
         frame = torch.zeros((1, *envs.single_observation_space.shape))
         obs_shape = model.preprocess(frame).shape[1:]
-    obs_buf = torch.zeros((args.num_steps, args.num_envs, *obs_shape))
-    actions_buf = torch.zeros((args.num_steps, args.num_envs, 2))
-    logprobs_buf = torch.zeros((args.num_steps, args.num_envs))
-    rewards_buf = torch.zeros((args.num_steps, args.num_envs))
-    dones_buf = torch.zeros((args.num_steps, args.num_envs))
-    values_buf = torch.zeros((args.num_steps, args.num_envs))
+    obs_buf = torch.zeros((args.num_steps, args.num_envs, *obs_shape), device=device)
+    actions_buf = torch.zeros((args.num_steps, args.num_envs, 2), device=device)
+    logprobs_buf = torch.zeros((args.num_steps, args.num_envs), device=device)
+    rewards_buf = torch.zeros((args.num_steps, args.num_envs), device=device)
+    dones_buf = torch.zeros((args.num_steps, args.num_envs), device=device)
+    values_buf = torch.zeros((args.num_steps, args.num_envs), device=device)
 
     recent_returns: deque[float] = deque(maxlen=20)
     recent_distances: deque[float] = deque(maxlen=20)
@@ -356,14 +370,15 @@ def train(args: PPOArgs) -> dict[str, Any]:
 
     seeds = [args.seed + update * 1000 + i for i in range(args.num_envs)]
     next_obs_np, _ = envs.reset(seed=seeds)
-    next_obs = model.preprocess(torch.from_numpy(next_obs_np))
-    next_done = torch.zeros(args.num_envs)
+    next_obs = model.preprocess(torch.from_numpy(next_obs_np).to(device))
+    next_done = torch.zeros(args.num_envs, device=device)
     start = time.perf_counter()
     start_step = global_step
     bar = tqdm(total=args.total_timesteps, initial=min(global_step, args.total_timesteps),
                disable=not args.progress, unit="step", dynamic_ncols=True)
     row: dict[str, Any] = {}
     interrupted = False
+    lost: WorkersLost | None = None
 
     def save() -> None:
         _save(checkpoint_path, args, model, optimizer, normalizer.return_rms, global_step,
@@ -386,31 +401,31 @@ def train(args: PPOArgs) -> dict[str, Any]:
                     logprobs_buf[step] = dist.log_prob(action).sum(-1)
                 values_buf[step] = value
                 actions_buf[step] = action
-                next_obs_np, reward, terminated, truncated, infos = envs.step(action.numpy())
+                next_obs_np, reward, terminated, truncated, infos = envs.step(action.cpu().numpy())
                 done = np.logical_or(terminated, truncated)
                 reward = np.asarray(reward, dtype=np.float64).copy()
                 # Time-limit truncation is not a real end: bootstrap from the final state.
                 idx = np.nonzero(truncated & ~terminated)[0]
                 if idx.size and "final_obs" in infos:
-                    final = torch.from_numpy(np.stack(infos["final_obs"][idx]))
+                    final = torch.from_numpy(np.stack(infos["final_obs"][idx])).to(device)
                     with torch.no_grad():
                         final_value = model.value(model.preprocess(final))
-                    reward[idx] += args.gamma * final_value.numpy()
-                rewards_buf[step] = torch.as_tensor(reward, dtype=torch.float32)
+                    reward[idx] += args.gamma * final_value.cpu().numpy()
+                rewards_buf[step] = torch.as_tensor(reward, dtype=torch.float32, device=device)
                 for i in np.nonzero(done)[0]:
                     final_info = infos["final_info"]
                     recent_returns.append(float(final_info["episode"]["r"][i]))
                     recent_distances.append(float(final_info["distance"][i]))
                     recent_success.append(float(final_info["is_success"][i]))
                     episodes += 1
-                next_obs = model.preprocess(torch.from_numpy(next_obs_np))
-                next_done = torch.as_tensor(done, dtype=torch.float32)
+                next_obs = model.preprocess(torch.from_numpy(next_obs_np).to(device))
+                next_done = torch.as_tensor(done, dtype=torch.float32, device=device)
 
             # Generalized advantage estimation.
             with torch.no_grad():
                 next_value = model.value(next_obs)
             advantages = torch.zeros_like(rewards_buf)
-            last_gae = torch.zeros(args.num_envs)
+            last_gae = torch.zeros(args.num_envs, device=device)
             for t in reversed(range(args.num_steps)):
                 if t == args.num_steps - 1:
                     not_done, following = 1.0 - next_done, next_value
@@ -431,7 +446,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
             for _ in range(args.update_epochs):
                 order = rng.permutation(batch_size)
                 for begin in range(0, batch_size, minibatch_size):
-                    mb = torch.from_numpy(order[begin:begin + minibatch_size])
+                    mb = torch.from_numpy(order[begin:begin + minibatch_size]).to(device)
                     dist, new_value = model.distribution(b_obs[mb])
                     new_logprob = dist.log_prob(b_actions[mb]).sum(-1)
                     entropy = dist.entropy().sum(-1).mean()
@@ -491,13 +506,19 @@ def train(args: PPOArgs) -> dict[str, Any]:
     except KeyboardInterrupt:
         interrupted = True
         save()
+    except WorkersLost as exc:
+        lost = exc
+        if row:  # an update finished in this run: keep what it learned, as Ctrl-C does
+            save()
     finally:
         bar.close()
         envs.close()
         if writer is not None:
             writer.close()
 
-    export_model(model.eval(), out / POLICY_NAME, task=args.task, max_speed=max_speed)
+    if lost is not None and not row:
+        raise lost  # no update finished: nothing learned, an earlier checkpoint stays as it was
+    export_model(model.cpu().eval(), out / POLICY_NAME, task=args.task, max_speed=max_speed)
     plot_learning_curve(metrics_path, out / CURVE_NAME)
     summary = {
         "global_step": global_step,
@@ -509,6 +530,9 @@ def train(args: PPOArgs) -> dict[str, Any]:
     }
     if interrupted:
         raise Interrupted(summary)
+    if lost is not None:
+        lost.summary = summary
+        raise lost
     return summary
 
 
@@ -518,9 +542,9 @@ def _save(path: Path, args: PPOArgs, model: ActorCritic, optimizer: torch.optim.
     args_record = {k: v for k, v in asdict(args).items() if k not in ("config", "model")}
     save_checkpoint(path, {
         "task": args.task,
-        "model": model.state_dict(),
+        "model": to_cpu(model.state_dict()),
         "model_config": model.config.to_dict(),
-        "optimizer": optimizer.state_dict(),
+        "optimizer": to_cpu(optimizer.state_dict()),
         "reward_rms": _rms_state(reward_rms),
         "global_step": global_step,
         "update": update,

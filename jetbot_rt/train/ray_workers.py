@@ -25,6 +25,7 @@ raises ``WorkersLost``. ``restarts`` counts the events; each is also one line on
 from __future__ import annotations
 
 import signal
+import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -35,14 +36,20 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
-from jetbot_rt.errors import UsageError
+from jetbot_rt.errors import UsageError, first_line
 
+PROBE_TIMEOUT_S = 5.0
+"""How long ``connect`` waits for a TCP answer from a cluster address (Ray itself retries an
+unreachable head for minutes)."""
 RESEED_STRIDE = 7919
 """A restarted env's new seed: its first seed + RESEED_STRIDE * the worker's restart count."""
 
 
 class WorkersLost(RuntimeError):
-    """An env worker died and did not come back within the restart bound."""
+    """An env worker died and did not come back within the restart bound. ``summary``: the
+    trainer's summary when it saved a checkpoint before giving up, else None."""
+
+    summary: dict[str, Any] | None = None
 
 
 def _import_ray() -> Any:
@@ -110,6 +117,19 @@ def split(num_envs: int, workers: int) -> list[range]:
     return blocks
 
 
+def _probe(address: str) -> None:
+    """UsageError unless something accepts a TCP connection at ``[ray://]HOST:PORT``."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise UsageError(f"--ray {address}: expected local, auto, HOST:PORT or "
+                         f"ray://HOST:PORT")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), PROBE_TIMEOUT_S).close()
+    except OSError as exc:
+        raise UsageError(f"--ray {address}: no Ray head answers there ({exc.strerror or exc}); "
+                         f"start one with `ray start --head` (docs/TRAINING.md)") from None
+
+
 def connect(address: str) -> bool:
     """``ray.init`` for ``--ray ADDRESS``: ``local`` starts Ray on this machine, anything
     else (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``) joins that cluster. Returns whether
@@ -120,10 +140,12 @@ def connect(address: str) -> bool:
     kwargs: dict[str, Any] = {"address": address, "log_to_driver": False}
     if address == "local":  # a new Ray of our own, even if this machine has a cluster running
         kwargs["include_dashboard"] = False
+    elif address != "auto":
+        _probe(address)
     try:
         ray.init(**kwargs)
-    except ConnectionError as exc:
-        raise UsageError(f"--ray {address}: {exc}") from None
+    except (ConnectionError, ValueError) as exc:  # no cluster; ray:// without ray[client]
+        raise UsageError(f"--ray {address}: {first_line(exc)}") from None
     return True
 
 
@@ -140,9 +162,9 @@ class RayVectorEnv(VectorEnv):
         cpus = int(ray.cluster_resources().get("CPU", 0))
         workers = workers or max(1, min(self.num_envs, cpus))
         if workers > self.num_envs:
-            raise UsageError(f"--ray-workers {workers} is more than --num-envs {self.num_envs}")
+            raise UsageError(f"--workers {workers} is more than --num-envs {self.num_envs}")
         if workers > cpus:
-            raise UsageError(f"--ray-workers {workers} need one CPU each; the Ray cluster has "
+            raise UsageError(f"--workers {workers} need one CPU each; the Ray cluster has "
                              f"{cpus}")
         self.blocks = split(self.num_envs, workers)
         self.max_restarts = max_restarts
@@ -241,8 +263,10 @@ class RayVectorEnv(VectorEnv):
         self.worker_restarts[worker] += 1
         count = self.worker_restarts[worker]
         block = self.blocks[worker]
-        print(f"jetbot-train: Ray env worker {worker} (envs {block.start}..{block.stop - 1}) "
-              f"lost; restart {count} of at most {self.max_restarts}", file=sys.stderr)
+        if count <= self.max_restarts:
+            print(f"jetbot-train: Ray env worker {worker} (envs {block.start}.."
+                  f"{block.stop - 1}) lost; restart {count} of at most {self.max_restarts}",
+                  file=sys.stderr)
         seeds = [None if self._seeds[i] is None else self._seeds[i] + RESEED_STRIDE * count
                  for i in block]
         deadline = time.monotonic() + self.restart_timeout

@@ -103,7 +103,8 @@ def sweep(namespace: argparse.Namespace) -> list[dict[str, Any]]:
                 name = f"{config_name}-seed{seed}"
                 options = {**table, "num_envs": namespace.num_envs, "seed": seed,
                            "workers": 0 if namespace.num_envs == 1 else None, "ray": None,
-                           "progress": False, "update_threads": namespace.num_envs}
+                           "progress": False, "update_threads": namespace.num_envs,
+                           "device": "cpu"}  # Ray gives a trial CPUs, not a GPU
                 if namespace.timesteps is not None:
                     options["total_timesteps"] = namespace.timesteps
                 args = ppo_args(namespace.task, options)
