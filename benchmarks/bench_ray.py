@@ -1,6 +1,6 @@
 """Ray env workers versus the trainer's AsyncVectorEnv, same machine, same run.
 
-    python benchmarks/bench_ray.py                                   # this machine: 2 workers
+    python benchmarks/bench_ray.py        # this machine: 2 workers, ~1.5 min idle on 2 cores
     python benchmarks/bench_ray.py --workers 1 2 4 8 16 --no-ppo --tag h100   # a big host
 
 Two figures, each with its AsyncVectorEnv baseline measured in the same run, alternating
@@ -64,10 +64,11 @@ def env_rate(kind: str, num_envs: int, workers: int, steps: int) -> float:
         envs.close()
 
 
-def ppo_rate(kind: str, num_envs: int, workers: int, updates: int) -> float:
+def ppo_rate(kind: str, num_envs: int, workers: int, updates: int, num_steps: int) -> float:
     from jetbot_rt.train.ppo import PPOArgs, train
     with tempfile.TemporaryDirectory() as out:
-        args = PPOArgs(num_envs=num_envs, num_steps=128, total_timesteps=num_envs * 128 * updates,
+        args = PPOArgs(num_envs=num_envs, num_steps=num_steps,
+                       total_timesteps=num_envs * num_steps * updates, device="cpu",
                        out=out, progress=False, checkpoint_every=10**6,
                        ray="local" if kind == "ray" else None,
                        workers=workers if kind == "ray" else None)
@@ -80,16 +81,17 @@ def compare(measure, repeats: int) -> dict:
         for kind in ("async", "ray"):
             rates[kind].append(round(measure(kind), 1))
     base, ray = statistics.median(rates["async"]), statistics.median(rates["ray"])
-    return {"async": rates["async"], "ray": rates["ray"], "async_median": base,
-            "ray_median": ray, "ray_vs_async": round(ray / base, 3)}
+    return {"async": rates["async"], "ray": rates["ray"], "async_median": round(base, 1),
+            "ray_median": round(ray, 1), "ray_vs_async": round(ray / base, 3)}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, nargs="+", default=[2])
     parser.add_argument("--envs-per-worker", type=int, default=4)
-    parser.add_argument("--env-steps", type=int, default=300, help="vector steps per measure")
-    parser.add_argument("--ppo-updates", type=int, default=3)
+    parser.add_argument("--env-steps", type=int, default=200, help="vector steps per measure")
+    parser.add_argument("--ppo-updates", type=int, default=2)
+    parser.add_argument("--ppo-steps", type=int, default=32, help="PPO steps per env per update")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--no-ppo", action="store_true", help="env steps/s only")
     parser.add_argument("--tag", help="results file suffix (e.g. the machine)")
@@ -98,7 +100,7 @@ def main() -> None:
     import ray
 
     load_start = load()
-    start = time.perf_counter()
+    began = start = time.perf_counter()
     ray.init(address="local", num_cpus=os.cpu_count(), include_dashboard=False,
              log_to_driver=False)
     ray_start_s = round(time.perf_counter() - start, 2)
@@ -111,7 +113,8 @@ def main() -> None:
                                           steps=args.env_steps), args.repeats)}
             if not args.no_ppo:
                 row["ppo"] = compare(partial(ppo_rate, num_envs=num_envs, workers=workers,
-                                             updates=args.ppo_updates), args.repeats)
+                                             updates=args.ppo_updates,
+                                             num_steps=args.ppo_steps), args.repeats)
             rows.append(row)
             print(json.dumps(row), flush=True)
     finally:
@@ -125,6 +128,8 @@ def main() -> None:
         "envs_per_worker": args.envs_per_worker,
         "env_steps": args.env_steps,
         "ppo_updates": args.ppo_updates,
+        "ppo_steps": args.ppo_steps,
+        "wall_s": round(time.perf_counter() - began, 1),
         "rows": rows,
     }
     name = "ray" + (f"-{args.tag}" if args.tag else "")
@@ -139,7 +144,8 @@ def write_markdown(result: dict, path: Path) -> None:
         "# Ray env workers vs AsyncVectorEnv",
         "",
         f"Machine: {result['machine']}; 1-min load average {result['load_1min_start']} at "
-        f"start, {result['load_1min_end']} at the end (other jobs included). Ray start-up "
+        f"start, {result['load_1min_end']} at the end (other jobs included); the benchmark "
+        f"took {result.get('wall_s', '?')} s. Ray start-up "
         f"(`ray.init`, not in the rates): {result['ray_init_s']} s. "
         f"Env steps/s on the same cores: AsyncVectorEnv with one env per process, one "
         f"process per worker, versus Ray with {result['envs_per_worker']} envs per worker. "

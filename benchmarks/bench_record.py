@@ -4,8 +4,11 @@ the disk and CPU time per minute of recording.
 ``jetbot-rt run`` as a subprocess at 30 Hz on the real backend: the emulated PCA9685 and a
 live GStreamer camera (a photo at 30 fps, scaled to 224x224), the bundled policy. Runs
 alternate without / with ``--record`` (``--pairs`` of each), so both see the same machine.
-Writes benchmarks/results/record.json and record.md.
+Writes benchmarks/results/record.json and record.md: tick-start jitter p99 and tick time with
+vs without, ticks lost (deadlines skipped: overruns), frames dropped and records lost, disk
+and CPU per minute of recording.
 
+    python benchmarks/bench_record.py     # 2 pairs of 30 s runs: ~2.5 min on an idle machine
     python benchmarks/bench_record.py [--seconds 30] [--pairs 2] [--backend real|sim]
                                       [--camera photo|ball|snow]
 """
@@ -113,6 +116,7 @@ def main() -> None:
                         help="what the real backend's camera shows (default photo)")
     args = parser.parse_args()
     runs: list[dict] = []
+    began = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for pair in range(args.pairs):
             for record in (False, True):
@@ -133,6 +137,8 @@ def main() -> None:
         "overruns": {"without": sum(r["overruns"] for r in plain),
                      "with": sum(r["overruns"] for r in rec)},
         "ticks": {"without": sum(r["ticks"] for r in plain), "with": sum(r["ticks"] for r in rec)},
+        "expected_ticks": {"without": sum(r["expected_ticks"] for r in plain),
+                           "with": sum(r["expected_ticks"] for r in rec)},
         "frames_dropped": sum(r["frames_dropped"] for r in rec),
         "records_lost": sum(r["records_lost"] for r in rec),
         "disk_mb_per_min": round(pooled(rec, "disk_bytes") / 1e6 / minutes, 2),
@@ -141,6 +147,7 @@ def main() -> None:
         "load_1min": [r["load_1min_before"] for r in runs],
         "cpus": os.cpu_count(),
         "machine": platform.machine(),
+        "wall_s": round(time.perf_counter() - began, 1),
         "runs": runs,
     }
     jitter = summary["late_ms_p99"]
@@ -155,15 +162,18 @@ def main() -> None:
         f"# Recording cost ({time.strftime('%Y-%m-%d')}, `bench_record.py --backend "
         f"{args.backend} --camera {args.camera} --seconds {args.seconds:g} --pairs "
         f"{args.pairs}`)\n\n"
-        f"{os.cpu_count()} cores, 1-min load before each run: {summary['load_1min']}\n\n"
+        f"{os.cpu_count()} cores, 1-min load before each run: {summary['load_1min']}; the "
+        f"benchmark took {summary['wall_s']} s\n\n"
         "| | without --record | with --record |\n| --- | --- | --- |\n"
         f"| tick start jitter p99 (late_ms) | {jitter['without']} ms | {jitter['with']} ms "
         f"(x{summary['late_p99_ratio']}) |\n"
         f"| tick time p50 / p99 | {summary['tick_ms_p50']['without']} / "
         f"{summary['tick_ms_p99']['without']} ms | {summary['tick_ms_p50']['with']} / "
         f"{summary['tick_ms_p99']['with']} ms |\n"
-        f"| ticks / overruns | {summary['ticks']['without']} / "
-        f"{summary['overruns']['without']} | {summary['ticks']['with']} / "
+        f"| ticks run / expected at 30 Hz | {summary['ticks']['without']} / "
+        f"{summary['expected_ticks']['without']} | {summary['ticks']['with']} / "
+        f"{summary['expected_ticks']['with']} |\n"
+        f"| ticks lost (deadlines skipped: overruns) | {summary['overruns']['without']} | "
         f"{summary['overruns']['with']} |\n"
         f"| CPU time per minute (runtime, camera, writer) | {cpu['without']} s | "
         f"{cpu['with']} s |\n\n"
