@@ -32,9 +32,10 @@ NUM_STEPS = 32
 
 
 def small_run(out: Path, updates: int, **kwargs) -> PPOArgs:
+    # One epoch of two minibatches: the Ray side is what these tests are about.
     return PPOArgs(num_envs=2, num_steps=NUM_STEPS, total_timesteps=2 * NUM_STEPS * updates,
-                   out=str(out), seed=5, progress=False, checkpoint_every=1, update_epochs=2,
-                   **kwargs)
+                   out=str(out), seed=5, progress=False, checkpoint_every=1, update_epochs=1,
+                   num_minibatches=2, **kwargs)
 
 
 def metrics(out: Path) -> list[dict[str, str]]:
@@ -119,14 +120,16 @@ class TestOneNode:
         from jetbot_rt.train.sweep import COLUMNS, sweep
 
         out = tmp_path / "sweep"
+        quick = tmp_path / "quick.toml"  # one rollout, one epoch: the sweep is the point
+        quick.write_text("[train]\nnum_steps = 64\nupdate_epochs = 1\n")
         args = build_parser().parse_args([
-            "sweep", "--timesteps", "128", "--num-envs", "1", "--seeds", "4", "7",
-            "--eval-episodes", "1", "--out", str(out)])
+            "sweep", "--timesteps", "64", "--num-envs", "1", "--seeds", "4", "7",
+            "--config", str(quick), "--eval-episodes", "1", "--out", str(out)])
         rows = sweep(args)
-        assert [(r["trial"], r["seed"]) for r in rows] == [("default-seed4", 4),
-                                                           ("default-seed7", 7)]
+        assert [(r["trial"], r["seed"]) for r in rows] == [("quick-seed4", 4),
+                                                           ("quick-seed7", 7)]
         for row in rows:
-            assert row["global_step"] == 128 and 0.0 <= row["eval_success_rate"] <= 1.0
+            assert row["global_step"] == 64 and 0.0 <= row["eval_success_rate"] <= 1.0
             assert (out / row["trial"] / "policy.onnx").stat().st_size > 0
             assert (out / row["trial"] / "checkpoint.pt").stat().st_size > 0
         with (out / "sweep.csv").open() as handle:
