@@ -107,7 +107,7 @@ def test_slow_rates_run_with_the_derived_frame_age(tmp_path: Path, rate: str) ->
     assert result.records[-1]["reason"].startswith("duration"), result.records[-1]
     (start,) = result.events("start")
     assert start["max_frame_age_s"] == pytest.approx(max(0.15, 1.5 / float(rate)))
-    assert len(result.ticks) >= 2 * float(rate) - 1
+    assert len(result.ticks) > 2  # the bug's runs ended on their second tick
     for line in telemetry.read_text().splitlines():
         strict_loads(line)
 

@@ -74,11 +74,9 @@ def env_without_runtime_dirs(rt: RuntimeProcess, **extra: str) -> dict:
 
 # ---- class 2: a stop that works whatever the environment of the sender --------------------
 
-STOP_ENVS = {
+STOP_ENVS = {  # (only XDG_RUNTIME_DIR set: where stop looks then is tests/test_stop.py's)
     "other-JETBOT_RT_RUNTIME_DIR": lambda rt: dict(
         rt.env, JETBOT_RT_RUNTIME_DIR=str(rt.root / "elsewhere")),
-    "XDG_RUNTIME_DIR-only": lambda rt: env_without_runtime_dirs(
-        rt, XDG_RUNTIME_DIR=str(rt.root / "xdg")),
     "RUNTIME_DIRECTORY-only": lambda rt: env_without_runtime_dirs(
         rt, RUNTIME_DIRECTORY=str(rt.root / "systemd")),
     "socket-file-removed": None,
