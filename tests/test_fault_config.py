@@ -100,8 +100,10 @@ def test_slow_rates_run_with_the_derived_frame_age(tmp_path: Path, rate: str) ->
     max_frame_age 0.15 s shorter than the period). The default now follows the period."""
     policy = policy_models.constant(tmp_path / "p.onnx", (0.5, 0.5))
     telemetry = tmp_path / "t.jsonl"
+    patient = tmp_path / "patient.toml"  # the watchdog is not the point (starved: it trips)
+    patient.write_text("[loop]\nwatchdog_timeout = 1.0\n")
     result = run_cli(["run", "--backend", "sim", "--policy", str(policy), "--rate", rate,
-                      "--duration", "2"], telemetry=telemetry,
+                      "--duration", "2", "--config", str(patient)], telemetry=telemetry,
                      env=dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run")))
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.records[-1]["reason"].startswith("duration"), result.records[-1]

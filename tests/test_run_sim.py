@@ -1,13 +1,19 @@
 """End to end: ``jetbot-rt run --backend sim`` in a subprocess, real onnxruntime and PyBullet."""
 
+from __future__ import annotations
+
 import subprocess
 import sys
+from functools import partial
 
 import policy_models
 import pytest
-from runner import run_cli
+from runner import Result, read_telemetry, run_cli
 
 PERIOD = 1 / 30
+PATIENT = "[loop]\nwatchdog_timeout = 1.0\n"
+"""For runs about something else than the watchdog: on this 2-core host at load 9 a sim run's
+default 0.1 s watchdog trips (the world's render starved between ticks): safe, not the point."""
 
 
 def write_config(tmp_path, text):
@@ -26,7 +32,7 @@ def assert_ends_at_zero(result):
 
 def test_constant_policy_duties_follow_the_formula(tmp_path):
     policy = policy_models.constant(tmp_path / "p.onnx", (0.5, -0.3))
-    config = write_config(tmp_path, "[actions]\ntrim = [1.0, 0.8]\nsign = [1, -1]\n")
+    config = write_config(tmp_path, PATIENT + "[actions]\ntrim = [1.0, 0.8]\nsign = [1, -1]\n")
     result = run_cli(
         ["run", "--backend", "sim", "--policy", str(policy), "--config", str(config),
          "--max-speed", "0.2", "--duration", "1.5"],
@@ -50,7 +56,8 @@ def test_constant_policy_duties_follow_the_formula(tmp_path):
 def test_forward_policy_drives_toward_the_block(tmp_path):
     policy = policy_models.constant(tmp_path / "p.onnx", (1.0, 1.0))
     result = run_cli(
-        ["run", "--backend", "sim", "--policy", str(policy), "--duration", "3"],
+        ["run", "--backend", "sim", "--policy", str(policy), "--duration", "3",
+         "--config", str(write_config(tmp_path, PATIENT))],
         telemetry=tmp_path / "t.jsonl",
     )
     assert result.returncode == 0, result.stderr
@@ -142,12 +149,30 @@ def bad_inputs(tmp_path):
     ]
 
 
-def test_bad_input_is_one_line_exit_2_and_motors_never_move(tmp_path):
-    for args, message in bad_inputs(tmp_path):
+def cli_in_process(args: list[str], telemetry, capfd) -> Result:
+    """``jetbot-rt ARGS`` through the CLI's entry point in this process (an interpreter and
+    onnxruntime start per case is most of a refusal's cost): exit code, stdout, stderr."""
+    from jetbot_rt.cli import main
+
+    args = [*args, "--telemetry", str(telemetry)] if telemetry is not None else args
+    try:
+        code = main(args)
+    except SystemExit as exc:
+        code = exc.code
+    out, err = capfd.readouterr()
+    return Result(code, out, err, read_telemetry(telemetry) if telemetry else [])
+
+
+def test_bad_input_is_one_line_exit_2_and_motors_never_move(tmp_path, capfd, monkeypatch):
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path / "run"))
+    cases = bad_inputs(tmp_path)
+    # All in this process; three (a file, a model, a subcommand) also as a user runs them.
+    for i, (args, message) in enumerate([*cases, *(cases[j] for j in (0, 1, -1))]):
         telemetry = tmp_path / "t.jsonl"
         telemetry.unlink(missing_ok=True)
         with_telemetry = args[0] == "run" and "--backend" in args
-        result = run_cli(args, telemetry=telemetry if with_telemetry else None)
+        run = run_cli if i >= len(cases) else partial(cli_in_process, capfd=capfd)
+        result = run(args, telemetry=telemetry if with_telemetry else None)
         assert result.returncode == 2, (args, result.stderr)
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1, (args, result.stderr)

@@ -87,8 +87,11 @@ def test_device_cpu_trains_the_same_weights_as_the_default(smoke_run, tmp_path):
 
 def test_runtime_loads_and_drives_the_trained_onnx(smoke_run, tmp_path, monkeypatch):
     monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path))  # beside any other jetbot-rt
+    patient = tmp_path / "patient.toml"  # the watchdog is not the point (starved: it trips)
+    patient.write_text("[loop]\nwatchdog_timeout = 1.0\n")
     result = run_cli(["run", "--backend", "sim", "--policy", str(smoke_run / "policy.onnx"),
-                      "--duration", "1"], telemetry=tmp_path / "t.jsonl")
+                      "--duration", "1", "--config", str(patient)],
+                     telemetry=tmp_path / "t.jsonl")
     assert result.returncode == 0, result.stderr
     ticks = result.ticks
     assert len(ticks) >= 5  # of 30 at 30 Hz: how many a loaded machine keeps is not the point
