@@ -10,6 +10,7 @@ restart counted in metrics.csv.
 from __future__ import annotations
 
 import csv
+import importlib
 import os
 import signal
 import socket
@@ -17,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from functools import partial
 from pathlib import Path
 
 import onnxruntime as ort
@@ -140,6 +142,16 @@ class TestOneNode:
                          for r in rows)
         assert any(not torch.equal(first[k], second[k]) for k in first)
 
+
+    def test_a_worker_that_cannot_build_its_envs_is_one_usage_error(self, one_node):
+        from jetbot_rt.errors import UsageError
+        from jetbot_rt.train.ray_workers import RayVectorEnv
+
+        with pytest.raises(UsageError, match=r"could not start \(ModuleNotFoundError: No module "
+                                              r"named 'pybullet_on_no_node'\)") as caught:
+            # an env factory as a node without the sim extra runs it
+            RayVectorEnv([partial(importlib.import_module, "pybullet_on_no_node")], workers=1)
+        assert "\n" not in str(caught.value)
 
     def test_workers_lost_beyond_restarts_is_one_line_exit_75_and_a_checkpoint(
             self, tmp_path, one_node, capsys):

@@ -176,7 +176,14 @@ class RayVectorEnv(VectorEnv):
         remote = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=0,
                             scheduling_strategy="SPREAD")(EnvWorker)
         self.actors = [remote.remote([env_fns[i] for i in block]) for block in self.blocks]
-        single_obs, single_act = ray.get(self.actors[0].spaces.remote())
+        try:  # every actor built its envs (a node without the sim, a different version...)
+            single_obs, single_act = ray.get([a.spaces.remote() for a in self.actors])[0]
+        except ray.exceptions.RayActorError as exc:
+            self.close_extras()
+            lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+            raise UsageError(f"--ray: an env worker could not start ({lines[-1][:200]}); "
+                             f"every node needs jetbot_rt[sim,train,cluster] of this "
+                             f"version") from None
         self.single_observation_space = single_obs
         self.single_action_space = single_act
         self.observation_space = batch_space(single_obs, self.num_envs)
