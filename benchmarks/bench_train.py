@@ -1,14 +1,17 @@
 """Training benchmarks: end-to-end PPO throughput, the bundled policy's training run and its
-evaluation. Writes benchmarks/results/train.json and train.md.
+evaluation. Writes benchmarks/results/train[-TAG].json and .md.
 
-    python benchmarks/bench_train.py --train-run runs/forward --command "jetbot-train ..." \
-        --command-wall-s 398                                            # all three
-    python benchmarks/bench_train.py --throughput-steps 2048 --episodes 0   # throughput only
-    python benchmarks/bench_train.py --episodes 0 --processes 1 2 4 8 16 --tag h100  # a big host
+    python benchmarks/bench_train.py                          # throughput, 1 and 2 processes
+    python benchmarks/bench_train.py --processes 2            # the issue's figure only (~3 min)
+    python benchmarks/bench_train.py --episodes 100           # and evaluate the bundled policy
+    python benchmarks/bench_train.py --processes 1 2 4 8 16 --tag h100   # a big host
+    python benchmarks/bench_train.py --throughput-steps 0 --train-run runs/forward \
+        --command "jetbot-train ..." --command-wall-s 398     # record a training run
 
-Throughput is PPO end to end at the training size and on the 224x224 path it replaced (the
-first bundled network, pool 4, physics at 240 Hz), in the same run, per number of env worker
-processes.
+Throughput is PPO end to end, in the same run, with three settings per number of env worker
+processes: the 224x224 path (the first bundled network, pool 4, physics at 240 Hz, the old
+update recipe), the training size with that old recipe (8 epochs x 4 minibatches, the action
+distribution checking its arguments), and the training size with today's ``PPOArgs``.
 
 Timings depend on what else the machine runs; the recorded ones say what the CPU was shared with.
 """
@@ -27,24 +30,41 @@ from pathlib import Path
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def measure_throughput(steps: int, num_envs: int, path: str) -> dict:
+SETTINGS = ("224", "56-old", "train")
+"""The throughput runs of each process count, baselines first."""
+OLD_RECIPE = {"update_epochs": 8, "num_minibatches": 4}
+"""PPOArgs before the update was made cheaper (issue 10)."""
+
+
+def measure_throughput(steps: int, num_envs: int, setting: str) -> dict:
     from jetbot_rt.config import Config
-    from jetbot_rt.train.model import LEGACY_IMAGE_SIZE, LEGACY_POOL, ModelConfig
+    from jetbot_rt.train.model import LEGACY_IMAGE_SIZE, LEGACY_POOL, ActorCritic, ModelConfig
     from jetbot_rt.train.ppo import PPOArgs, train
 
-    config, model = Config(), ModelConfig()
-    if path == "224":
+    config, model, recipe = Config(), ModelConfig(), {}
+    if setting == "224":
         config.sim.physics_hz = 240.0
         model = ModelConfig(image_size=LEGACY_IMAGE_SIZE, pool=LEGACY_POOL)
-    with tempfile.TemporaryDirectory() as out:
-        start = time.perf_counter()
-        summary = train(PPOArgs(total_timesteps=steps, num_envs=num_envs, out=out, config=config,
-                                model=model, progress=False))
-        total = time.perf_counter() - start
+    if setting in ("224", "56-old"):
+        recipe = OLD_RECIPE
+    ActorCritic.validate_args = setting != "train"
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            args = PPOArgs(total_timesteps=steps, num_envs=num_envs, out=out, config=config,
+                           model=model, progress=False, **recipe)
+            start = time.perf_counter()
+            summary = train(args)
+            total = time.perf_counter() - start
+    finally:
+        ActorCritic.validate_args = False
     return {
-        "path": path,
+        "path": setting,
         "image_size": model.image_size,
         "physics_hz": config.sim.physics_hz,
+        "update_epochs": args.update_epochs,
+        "num_minibatches": args.num_minibatches,
+        "update_threads": args.update_threads,
+        "validate_args": setting != "train",
         "timesteps": summary["global_step"],
         "num_envs": num_envs,
         "env_steps_per_s_training_loop": summary["steps_per_s"],
@@ -73,24 +93,31 @@ def write_markdown(result: dict, path: Path) -> None:
         lines += [f"Note: {result['note']}", ""]
     if "throughput" in result:
         rows = result["throughput"]
+        by = {(r["num_envs"], r["path"]): r for r in rows}
+        new = next(r for r in rows if r["path"] == "train")
         lines += [
             "## PPO throughput (end to end: render, policy, update)", "",
             f"{rows[0]['timesteps']} env steps per run, one env per worker process; env "
             "steps/s in the training loop (with worker start and ONNX export). 1-min load "
             f"average {result.get('loadavg_1min_at_start')} at start, "
             f"{result.get('loadavg_1min_at_end')} at the end.", "",
-            "| worker processes | 224x224 path (pool 4, 240 Hz) | training size "
-            f"({rows[-1]['image_size']}x{rows[-1]['image_size']}, "
-            f"{rows[-1]['physics_hz']:g} Hz) | ratio |",
-            "| --- | --- | --- | --- |",
+            "| worker processes | 224x224 path (pool 4, 240 Hz, old recipe) | "
+            f"{new['image_size']}x{new['image_size']}, old recipe (8 epochs x 4 minibatches) "
+            f"| {new['image_size']}x{new['image_size']}, {new['physics_hz']:g} Hz, now "
+            f"({new['update_epochs']} epochs x {new['num_minibatches']} minibatches) "
+            "| now / 224 | now / old recipe |",
+            "| --- | --- | --- | --- | --- | --- |",
         ]
-        for base, new in zip(rows[::2], rows[1::2], strict=True):
-            ratio = new["env_steps_per_s_training_loop"] / base["env_steps_per_s_training_loop"]
-            lines.append(
-                f"| {base['num_envs']} | {base['env_steps_per_s_training_loop']} "
-                f"({base['env_steps_per_s_with_startup_and_export']}) | "
-                f"**{new['env_steps_per_s_training_loop']}** "
-                f"({new['env_steps_per_s_with_startup_and_export']}) | x{ratio:.2f} |")
+        for n in sorted({r["num_envs"] for r in rows}):
+            cells = [by.get((n, s)) for s in SETTINGS]
+            shown = [f"{r['env_steps_per_s_training_loop']} "
+                     f"({r['env_steps_per_s_with_startup_and_export']})" if r else "-"
+                     for r in cells]
+            now = cells[2]["env_steps_per_s_training_loop"] if cells[2] else None
+            ratios = [f"x{now / r['env_steps_per_s_training_loop']:.2f}" if now and r else "-"
+                      for r in cells[:2]]
+            lines.append(f"| {n} | {shown[0]} | {shown[1]} | **{shown[2]}** | "
+                         f"{ratios[0]} | {ratios[1]} |")
         lines.append("")
     if "bundled_training" in result:
         b = result["bundled_training"]
@@ -121,7 +148,8 @@ def write_markdown(result: dict, path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--throughput-steps", type=int, default=2048)
+    parser.add_argument("--throughput-steps", type=int, default=4096,
+                        help="env steps per throughput run (0: skip the throughput)")
     parser.add_argument("--num-envs", type=int, default=os.cpu_count() or 1,
                         help="eval worker processes")
     parser.add_argument("--processes", type=int, nargs="+", default=[1, 2],
@@ -131,7 +159,10 @@ def main() -> None:
     parser.add_argument("--command", default="", help="the command that made --train-run")
     parser.add_argument("--command-wall-s", type=float,
                         help="wall-clock of that whole command, timed outside it")
-    parser.add_argument("--episodes", type=int, default=100, help="0: skip the evaluation")
+    parser.add_argument("--episodes", type=int, default=0,
+                        help="evaluate the bundled policy over this many episodes (0: skip)")
+    parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=list(SETTINGS),
+                        help="throughput settings to run (default: all three)")
     parser.add_argument("--note", default="", help="e.g. what else shared the CPU")
     args = parser.parse_args()
 
@@ -148,8 +179,8 @@ def main() -> None:
     if args.throughput_steps > 0:
         result["loadavg_1min_at_start"] = round(os.getloadavg()[0], 2)
         result["throughput"] = [
-            measure_throughput(args.throughput_steps, n, path)
-            for n in args.processes for path in ("224", "train")
+            measure_throughput(args.throughput_steps, n, setting)
+            for n in args.processes for setting in args.settings
         ]
         result["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     if args.train_run is not None:

@@ -52,3 +52,20 @@ def test_a_config_saved_before_image_size_existed_is_the_224_pooled_network():
     assert (config.image_size, config.pool) == (224, 4)
     with pytest.raises(ValueError, match="multiple of pool"):
         ModelConfig(image_size=64, pool=3)
+
+
+@pytest.mark.parametrize("preset", [None, "ACTIVE"])
+def test_torch_threads_sleep_while_waiting_unless_the_user_says_otherwise(preset):
+    """Spinning OpenMP threads made the update 6x slower on shared cores; the policy has to be
+    in the environment before torch loads libgomp, i.e. when the train package is imported."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if preset:
+        env["OMP_WAIT_POLICY"] = preset
+    code = "import os, jetbot_rt.train, torch; print(os.environ['OMP_WAIT_POLICY'])"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True, timeout=120).stdout.split()
+    assert out == [preset or "PASSIVE"]

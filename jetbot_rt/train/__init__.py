@@ -4,6 +4,14 @@ gymnasium, not torch) when gymnasium is installed; without it ``jetbot-train`` n
 missing ``train`` extra in one line instead of a traceback."""
 
 import contextlib
+import os
+
+# Torch's OpenMP threads wait for work by sleeping, not spinning (libgomp reads this when torch
+# loads it, so it must be set before the first ``import torch``; a value the user set wins).
+# Spinning threads that the OS has descheduled -- any time the cores have other work, e.g.
+# two update threads on two cores shared with other jobs -- made PPO's update 6x slower
+# (benchmarks/bench_train.py, docs/TRAINING.md "Speed").
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 with contextlib.suppress(ImportError):
     from jetbot_rt.train.registration import register_envs

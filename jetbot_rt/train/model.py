@@ -63,6 +63,11 @@ def _layer_init(layer: nn.Module, gain: float) -> nn.Module:
 
 
 class ActorCritic(nn.Module):
+    validate_args = False
+    """Whether the action distribution checks its arguments (torch's default: yes). Off: at
+    PPO's batch of 2 frames per step the checks cost about as much as the network itself
+    (benchmarks/bench_train.py turns them on for its baseline)."""
+
     def __init__(self, config: ModelConfig = ModelConfig()) -> None:
         super().__init__()
         self.config = config
@@ -116,6 +121,7 @@ class ActorCritic(nn.Module):
     def distribution(self, x: torch.Tensor) -> tuple[torch.distributions.Normal, torch.Tensor]:
         """Action distribution and value of preprocessed observations."""
         mu, log_std, value = self.heads(x)
-        return torch.distributions.Normal(mu, log_std.exp()), value.squeeze(-1)
+        normal = torch.distributions.Normal(mu, log_std.exp(), validate_args=self.validate_args)
+        return normal, value.squeeze(-1)
 
 
