@@ -57,6 +57,14 @@ def train_main(capsys, *args: str) -> tuple[int, str, str]:
     return code, out, err
 
 
+def train_here(capsys, *args: str) -> subprocess.CompletedProcess:
+    """``train_main`` shaped as ``train_cli``'s result: the runs that resume, start from or
+    repeat the smoke run train in this process (the smoke run, Ctrl-C and two refusals go
+    through the console script; an interpreter and torch start is ~3-5 s a run)."""
+    code, out, err = train_main(capsys, *args)
+    return subprocess.CompletedProcess(args, code, out, err)
+
+
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("smoke")
@@ -75,8 +83,8 @@ def test_smoke_training_writes_checkpoint_onnx_metrics_and_curve(smoke_run):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the default device is CUDA here")
-def test_device_cpu_trains_the_same_weights_as_the_default(smoke_run, tmp_path):
-    result = train_cli(*SMOKE, "--out", str(tmp_path), "--device", "cpu")
+def test_device_cpu_trains_the_same_weights_as_the_default(smoke_run, tmp_path, capsys):
+    result = train_here(capsys, *SMOKE, "--out", str(tmp_path), "--device", "cpu")
     assert result.returncode == 0, result.stderr
     default = torch.load(smoke_run / "checkpoint.pt", weights_only=True)
     on_cpu = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
@@ -99,12 +107,12 @@ def test_runtime_loads_and_drives_the_trained_onnx(smoke_run, tmp_path, monkeypa
     assert any(abs(c) > 0 for t in ticks for c in t["cmd"])  # it did drive
 
 
-def test_resume_continues_the_step_count(smoke_run, tmp_path):
+def test_resume_continues_the_step_count(smoke_run, tmp_path, capsys):
     run = tmp_path / "resumed"
     shutil.copytree(smoke_run, run)
-    result = train_cli("train", "--task", "forward", "--timesteps", "192", "--num-envs", "1",
-                       "--workers", "0", "--out", str(run), "--resume", "--no-progress",
-                       *QUICK_UPDATE)
+    result = train_here(capsys, "train", "--task", "forward", "--timesteps", "192",
+                        "--num-envs", "1", "--workers", "0", "--out", str(run), "--resume",
+                        "--no-progress", *QUICK_UPDATE)
     assert result.returncode == 0, result.stderr
     steps = [r.split(",")[1] for r in (run / "metrics.csv").read_text().splitlines()[1:]]
     assert steps == ["64", "128", "192"]
@@ -276,12 +284,12 @@ def test_ctrl_c_saves_a_checkpoint_and_prints_the_resume_command(tmp_path):
     assert (out / "policy.onnx").stat().st_size > 0
 
 
-def test_init_starts_from_another_tasks_checkpoint(smoke_run, tmp_path):
+def test_init_starts_from_another_tasks_checkpoint(smoke_run, tmp_path, capsys):
     out = tmp_path / "seek"
-    result = train_cli("train", "--task", "seek", "--timesteps", "32", "--num-envs", "1",
-                       "--workers", "0", "--num-steps", "32", "--out", str(out), "--no-progress",
-                       "--init", str(smoke_run / "checkpoint.pt"), "--update-epochs", "1",
-                       "--learning-rate", "0")
+    result = train_here(capsys, "train", "--task", "seek", "--timesteps", "32",
+                        "--num-envs", "1", "--workers", "0", "--num-steps", "32", "--out",
+                        str(out), "--no-progress", "--init", str(smoke_run / "checkpoint.pt"),
+                        "--update-epochs", "1", "--learning-rate", "0")
     assert result.returncode == 0, result.stderr
     start = torch.load(smoke_run / "checkpoint.pt", weights_only=True)["model"]
     after = torch.load(out / "checkpoint.pt", weights_only=True)
