@@ -118,9 +118,13 @@ def test_ready_then_watchdog_twice_per_usec_in_a_sim_run(tmp_path: Path):
     listener = path_listener(tmp_path)
     watchdog_usec, duration = 1_000_000, 3.0
     env = service_env(listener, watchdog_usec, tmp_path / "run")
+    # The pings are the point, not the loop's own 0.1 s watchdog, which a starved sim world on a
+    # loaded host trips between ticks (safe, exit 3): 0.5 s still trips long before a 1 s gap.
+    config = tmp_path / "patient.toml"
+    config.write_text("[loop]\nwatchdog_timeout = 0.5\n")
     result = jetbot_rt(
         "run", "--backend", "sim", "--policy", str(policy), "--duration", str(duration),
-        "--telemetry", str(telemetry), env=env,
+        "--config", str(config), "--telemetry", str(telemetry), env=env,
     )
     messages = listener.close()
     assert result.returncode == 0, result.stderr
