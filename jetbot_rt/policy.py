@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from jetbot_rt.config import LAYOUTS, PolicyConfig
+from jetbot_rt.config import LAYOUTS, Config, PolicyConfig
 from jetbot_rt.errors import Fault, UsageError, first_line
 
 META_PREFIX = "jetbot_rt."
@@ -73,6 +73,14 @@ DEFAULT_TASK = "forward"
 def bundled_policy_path(task: str = DEFAULT_TASK) -> Path:
     """The policy bundled in the package for ``task`` (``policies/<task>.onnx``)."""
     return Path(__file__).resolve().parent / "policies" / f"{task}.onnx"
+
+
+def bundled_task(config: Config) -> str:
+    """The task whose bundled policy a run without ``--policy`` drives: ``[sim] task`` where
+    one is bundled for it (``jetbot-rt run --backend sim`` with ``[sim] task = "seek"`` drives
+    the seek policy in the seek scene), else forward, the seed's task."""
+    task = config.sim.task
+    return task if task and bundled_policy_path(task).is_file() else DEFAULT_TASK
 
 
 def resolve_policy_path(given: str | Path | None, task: str = DEFAULT_TASK) -> Path:

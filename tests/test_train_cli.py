@@ -258,8 +258,9 @@ def test_without_the_train_extra_one_line_names_it():
 
 def test_ctrl_c_saves_a_checkpoint_and_prints_the_resume_command(tmp_path):
     out = tmp_path / "run"
-    args = ["train", "--task", "seek", "--timesteps", "100000", "--num-envs", "1",
-            "--num-steps", "16", "--update-epochs", "1", "--out", str(out), "--no-progress"]
+    args = ["train", "--task", "seek", "--algo", "ppo", "--timesteps", "100000",
+            "--num-envs", "1", "--num-steps", "16", "--update-epochs", "1", "--out", str(out),
+            "--no-progress"]
     # a shell's background job inherits SIGINT ignored; a user's terminal delivers it
     proc = subprocess.Popen([JETBOT_TRAIN, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True,
@@ -286,7 +287,8 @@ def test_ctrl_c_saves_a_checkpoint_and_prints_the_resume_command(tmp_path):
 
 def test_init_starts_from_another_tasks_checkpoint(smoke_run, tmp_path, capsys):
     out = tmp_path / "seek"
-    result = train_here(capsys, "train", "--task", "seek", "--timesteps", "32",
+    result = train_here(capsys, "train", "--task", "seek", "--algo", "ppo",
+                        "--timesteps", "32",
                         "--num-envs", "1", "--workers", "0", "--num-steps", "32", "--out",
                         str(out), "--no-progress", "--init", str(smoke_run / "checkpoint.pt"),
                         "--update-epochs", "1", "--learning-rate", "0")

@@ -36,6 +36,7 @@ from jetbot_rt.policy import (
     META_PREFIX,
     OnnxPolicy,
     bundled_policy_path,
+    bundled_task,
     resolve_policy_path,
     shown,
 )
@@ -103,7 +104,7 @@ def build_config(args: argparse.Namespace) -> Config:
         except UsageError as exc:
             raise UsageError(f"{flag}: {exc}") from None
     telemetry = config.telemetry.path
-    policy = config.policy.path or str(bundled_policy_path())
+    policy = config.policy.path or str(bundled_policy_path(bundled_task(config)))
     for what, other in (("--policy", policy), ("--config", args.config)):
         if telemetry and other and same_file(telemetry, other):
             raise UsageError(f"--telemetry {telemetry} is the {what} file; "
@@ -249,7 +250,7 @@ class Runtime:
     def load(self) -> Loaded:
         """Policy, action pipeline and recorder: everything that can fail on bad input before
         any device is opened."""
-        path = resolve_policy_path(self.config.policy.path)
+        path = resolve_policy_path(self.config.policy.path, bundled_task(self.config))
         limit = self.config.loop.warmup_timeout
         try:
             policy = self._in_worker(

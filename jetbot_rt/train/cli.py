@@ -25,6 +25,9 @@ EXIT_INTERRUPTED = 130
 EXIT_WORKERS_LOST = 75
 """``--ray``: env workers lost beyond their restarts (sysexits' EX_TEMPFAIL: try again later,
 with ``--resume`` when a checkpoint was written)."""
+ALGOS = ("ppo", "dagger")
+TASK_ALGO = {"seek": "dagger"}
+"""The default --algo per task (docs/TRAINING.md, "Training seek by DAgger", says why)."""
 
 
 def _task_list() -> str:
@@ -47,14 +50,21 @@ def build_parser() -> argparse.ArgumentParser:
     cores = os.cpu_count() or 1
 
     train = sub.add_parser(
-        "train", help="train a policy with PPO in the PyBullet sim", formatter_class=formatter,
-        description="Train a camera-image policy with PPO in the PyBullet sim. Writes "
+        "train", help="train a policy (PPO or DAgger) in the PyBullet sim",
+        formatter_class=formatter,
+        description="Train a camera-image policy with PPO or DAgger in the PyBullet sim. Writes "
         "checkpoint.pt, policy.onnx, metrics.csv, learning_curve.png (and TensorBoard events "
         "when tensorboard is installed) to --out. Ctrl-C saves a checkpoint and prints the "
         "command that resumes.", epilog=_task_list())
     train.add_argument("--task", default="forward", choices=tasks, help="the task to learn")
     train.add_argument("--config", help="TOML file: [sim], [actions], [loop] shape the env; "
-                       "a [train] table (and [train.model]) sets the PPO options below")
+                       "a [train] table (and [train.model]) sets the options below")
+    train.add_argument(
+        "--algo", choices=ALGOS,
+        help="ppo: reinforcement learning from the task's reward; dagger: imitation of a "
+        "privileged expert that reads the sim's state (seek only; the policy still sees only "
+        "the camera). Default: " + ", ".join(f"{t}: {a}" for t, a in TASK_ALGO.items())
+        + ", other tasks: ppo")
     add_ppo_arguments(train)
 
     export = sub.add_parser(
@@ -119,16 +129,22 @@ def _resume_command(argv: list[str]) -> str:
 
 
 def _train(args: argparse.Namespace, argv: list[str]) -> int:
+    from jetbot_rt.train import dagger, ppo
     from jetbot_rt.train.options import overrides
-    from jetbot_rt.train.ppo import Interrupted, ppo_args, train
     from jetbot_rt.train.ray_workers import WorkersLost
 
     config, table = _load_train_config(args.config)
-    ppo = ppo_args(args.task, overrides(args, table))
-    ppo.config = config
+    algo = args.algo or TASK_ALGO.get(args.task, "ppo")
+    if algo == "dagger":
+        options: object = dagger.dagger_args(args.task, overrides(args, table, algo))
+        train = dagger.train
+    else:
+        options = ppo.ppo_args(args.task, overrides(args, table, algo))
+        train = ppo.train
+    options.config = config  # type: ignore[attr-defined]
     try:
-        summary = train(ppo)
-    except Interrupted as stop:
+        summary = train(options)  # type: ignore[arg-type]
+    except ppo.Interrupted as stop:
         summary = stop.summary
         print(f"\ninterrupted at {summary['global_step']} steps; wrote {summary['checkpoint']}, "
               f"{summary['policy']} and the learning curve. Resume with:\n"

@@ -85,7 +85,9 @@ def _add(group: argparse._ArgumentGroup, flags: list[str], dest: str, spec: data
 
 
 def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
-    """One ``--field-name`` per ``PPOArgs`` field and ``--model-name`` per ``ModelConfig``."""
+    """One ``--field-name`` per ``PPOArgs`` field, per ``DAggerArgs`` field that PPO has not,
+    and ``--model-name`` per ``ModelConfig``."""
+    from jetbot_rt.train.dagger import DAggerArgs
     from jetbot_rt.train.model import ModelConfig
     from jetbot_rt.train.ppo import TASK_DEFAULTS, PPOArgs
 
@@ -97,6 +99,15 @@ def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
         per_task = {t: d[spec.name] for t, d in TASK_DEFAULTS.items() if spec.name in d}
         flags = ["--" + spec.name.replace("_", "-"), *ALIASES.get(spec.name, ())]
         _add(group, flags, spec.name, spec, docs.get(spec.name, ""), per_task)
+    dagger_group = parser.add_argument_group(
+        "DAgger options (--algo dagger; it shares --out, --seed, --resume, --init, --num-envs, "
+        "--workers, --learning-rate, --torch-threads, --progress with PPO, each with "
+        "DAgger's own default)")
+    dagger_docs, ppo_names = field_docs(DAggerArgs), {f.name for f in dataclasses.fields(PPOArgs)}
+    for spec in dataclasses.fields(DAggerArgs):
+        if spec.name not in ppo_names and spec.name not in SKIPPED:
+            _add(dagger_group, ["--" + spec.name.replace("_", "-")], spec.name, spec,
+                 dagger_docs.get(spec.name, ""), {})
     model_group = parser.add_argument_group("network options (a [train.model] table)")
     model_docs = field_docs(ModelConfig)
     for spec in dataclasses.fields(ModelConfig):
@@ -106,11 +117,17 @@ def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
              spec, model_docs.get(spec.name, ""), per_task)
 
 
-def overrides(namespace: argparse.Namespace, table: dict[str, Any] | None) -> dict[str, Any]:
-    """The ``[train]`` table updated with the flags given on the command line."""
+def overrides(namespace: argparse.Namespace, table: dict[str, Any] | None,
+              algo: str = "ppo") -> dict[str, Any]:
+    """The ``[train]`` table updated with the flags given on the command line; a flag of the
+    other algorithm is an error."""
+    from jetbot_rt.errors import UsageError
+    from jetbot_rt.train.dagger import DAggerArgs
     from jetbot_rt.train.ppo import PPOArgs
 
-    names = {f.name for f in dataclasses.fields(PPOArgs)} - set(SKIPPED)
+    known = {"ppo": PPOArgs, "dagger": DAggerArgs}
+    names = {f.name for f in dataclasses.fields(known[algo])} - set(SKIPPED)
+    every = set().union(*({f.name for f in dataclasses.fields(c)} for c in known.values()))
     result: dict[str, Any] = {k: v for k, v in (table or {}).items() if k != "model"}
     model: dict[str, Any] = dict((table or {}).get("model", {}))
     for key, value in vars(namespace).items():
@@ -118,6 +135,9 @@ def overrides(namespace: argparse.Namespace, table: dict[str, Any] | None) -> di
             model[key[len("model."):]] = value
         elif key in names:
             result[key] = value
+        elif key in every - set(SKIPPED):
+            flag = "--" + key.replace("_", "-")
+            raise UsageError(f"{flag} is not an option of --algo {algo}")
     if model:
         result["model"] = model
     return result

@@ -207,13 +207,14 @@ def ppo_args(task: str, overrides: dict[str, Any] | None = None) -> PPOArgs:
     return replace(PPOArgs(), task=task, **values, model=replace(ModelConfig(), **model))
 
 
-def _write_metrics_row(path: Path, row: dict[str, Any]) -> None:
+def _write_metrics_row(path: Path, row: dict[str, Any],
+                       names: tuple[str, ...] = METRIC_FIELDS) -> None:
     new = not path.exists()
     with path.open("a", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=METRIC_FIELDS)
+        writer = csv.DictWriter(handle, fieldnames=names)
         if new:
             writer.writeheader()
-        writer.writerow({k: row.get(k, "") for k in METRIC_FIELDS})
+        writer.writerow({k: row.get(k, "") for k in names})
 
 
 def plot_learning_curve(metrics_csv: Path, png: Path) -> None:

@@ -1,0 +1,317 @@
+"""DAgger (Ross et al. 2011): train the camera policy by imitating a privileged teacher.
+
+The teacher (``expert.py``) reads the simulator's state; the student is the network PPO
+trains (``model.ActorCritic``, the same preprocessing and ONNX export), and sees only the
+camera. Iteration 0 lets the teacher drive (with action noise, for states off its own path);
+every later one lets the student drive (the teacher drives a ``beta`` share of the episodes,
+``beta`` halving each iteration) and labels every frame the student saw with the teacher's
+action. The frames are aggregated (uint8) and the student's ``mu`` is regressed onto the
+labels (MSE, Adam) for a few epochs. A training-time privilege only: the exported policy
+needs nothing but the image. docs/TRAINING.md ("Training seek by DAgger") says why.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import asdict, dataclass, field, fields, replace
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
+from tqdm import tqdm
+
+from jetbot_rt.config import Config
+from jetbot_rt.errors import UsageError
+from jetbot_rt.train.checkpoint import (
+    CHECKPOINT_NAME,
+    load_checkpoint,
+    model_from_checkpoint,
+    save_checkpoint,
+)
+from jetbot_rt.train.env import get_task, max_speed_of
+from jetbot_rt.train.expert import Expert
+from jetbot_rt.train.export import export_model
+from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.ppo import (
+    CURVE_NAME,
+    METRICS_NAME,
+    POLICY_NAME,
+    Interrupted,
+    _prepare_out,
+    _worker_env,
+    _write_metrics_row,
+    usable_cores,
+)
+from jetbot_rt.train.wrappers import Shaping
+
+METRIC_FIELDS = ("iteration", "global_step", "wall_s", "collect_s", "regress_s", "dataset",
+                 "beta", "episodes", "success_rate", "expert_success_rate", "loss")
+NO_SHAPING = Shaping("none", 0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass
+class DAggerArgs:
+    task: str = "seek"
+    """Task name; it needs an expert (seek)."""
+    out: str = "runs/seek"
+    """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
+    config: Config = field(default_factory=Config)
+    """Runtime config: sim physics, actions (max_speed, trim, sign), loop rate."""
+    seed: int = 1
+    """Seeds torch, the episodes' scenes (iteration i, env j: seed * 100000 + i * 1000 + j)
+    and minibatch shuffling."""
+    resume: bool = False
+    """Continue from ``out/checkpoint.pt`` (network, optimizer, iteration); the aggregated
+    frames are not kept, so the dataset starts again from the student's rollouts."""
+    init: str | None = None
+    """Start from this checkpoint's network (any task)."""
+    num_envs: int = field(default_factory=lambda: usable_cores())
+    """Envs stepped together, each in a worker process of its own; one per core by default."""
+    workers: int | None = None
+    """0: all envs in the training process (SyncVectorEnv); None: one process per env."""
+    iterations: int = 12
+    """DAgger iterations (iteration 0: the expert drives)."""
+    steps_per_iteration: int = 3000
+    """Env steps collected per iteration, over all envs (finished episodes only count)."""
+    expert_noise: float = 0.3
+    """Std of the Gaussian noise on the expert's action while it drives (iteration 0 and the
+    beta share): states off the expert's path, with their corrections."""
+    beta: float = 0.5
+    """Share of episodes the expert drives in iteration 1; halves every iteration."""
+    train_samples: int = 16_000
+    """Frames regressed on after each iteration, in shuffled passes over the aggregate (a
+    fixed cost: epochs over a growing aggregate would make each iteration slower than the
+    last)."""
+    batch_size: int = 128
+    """Frames per Adam step."""
+    learning_rate: float = 1e-3
+    """Adam's step size."""
+    stop_weight: float = 4.0
+    """Loss weight of frames the expert labels stop ([0, 0]): few, and the ones that decide
+    whether the block is pushed."""
+    torch_threads: int = field(default_factory=lambda: usable_cores())
+    """Learner threads during the regression (the env workers are idle then)."""
+    progress: bool = True
+    """Show a progress bar."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """The network (``model.py``)."""
+
+
+def dagger_args(task: str, overrides: dict[str, Any] | None = None) -> DAggerArgs:
+    """``DAggerArgs`` for ``task`` with ``overrides`` (a ``[train]`` table, then flags)."""
+    get_task(task)
+    values = {k: v for k, v in (overrides or {}).items() if k != "model"}
+    names = {f.name for f in fields(DAggerArgs)} - {"task", "config", "model"}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise UsageError(f"unknown DAgger option(s) {', '.join(unknown)} "
+                         f"(known: {', '.join(sorted(names))})")
+    model = dict((overrides or {}).get("model", {}))
+    if "channels" in model:
+        model["channels"] = tuple(model["channels"])
+    return replace(DAggerArgs(), task=task, **{"out": f"runs/{task}", **values},
+                   model=replace(ModelConfig(), **model))
+
+
+class Dataset:
+    """The aggregated frames (uint8, as rendered) and the expert's labels, growing."""
+
+    def __init__(self, shape: tuple[int, ...]) -> None:
+        self.frames = np.zeros((0, *shape), dtype=np.uint8)
+        self.labels = np.zeros((0, 2), dtype=np.float32)
+
+    def add(self, frames: list[np.ndarray], labels: list[np.ndarray]) -> None:
+        if frames:
+            self.frames = np.concatenate([self.frames, np.stack(frames)])
+            self.labels = np.concatenate([self.labels, np.stack(labels)])
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
+            args: DAggerArgs, rng: np.random.Generator) -> float:
+    """Weighted MSE of ``mu`` onto the labels over ``args.train_samples`` frames; the mean
+    loss."""
+    model.train()
+    losses: list[float] = []
+    stop = np.all(data.labels == 0.0, axis=1)
+    weights = torch.from_numpy(np.where(stop, args.stop_weight, 1.0).astype(np.float32))
+    passes = -(-args.train_samples // max(len(data), 1))
+    order = np.concatenate([rng.permutation(len(data)) for _ in range(passes)])
+    for begin in range(0, args.train_samples, args.batch_size):
+        idx = np.sort(order[begin:min(begin + args.batch_size, args.train_samples)])
+        frames = torch.from_numpy(data.frames[idx])
+        mu = model.heads(model.preprocess(frames))[0]
+        error = ((mu - torch.from_numpy(data.labels[idx])) ** 2).sum(-1)
+        loss = (error * weights[idx]).sum() / weights[idx].sum()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    model.eval()
+    return float(np.mean(losses)) if losses else float("nan")
+
+
+def collect(envs: VectorEnv, model: ActorCritic, expert: Expert, data: Dataset,
+            args: DAggerArgs, iteration: int, rng: np.random.Generator,
+            bar: tqdm) -> dict[str, float]:
+    """Roll out one iteration; add every frame of the finished episodes with its label."""
+    beta = 1.0 if iteration == 0 else args.beta * 0.5 ** (iteration - 1)
+    n = envs.num_envs
+    seeds = [args.seed * 100_000 + iteration * 1000 + j for j in range(n)]
+    obs, infos = envs.reset(seed=seeds)
+    by_expert = rng.random(n) < beta
+    episode: list[tuple[list[np.ndarray], list[np.ndarray]]] = [([], []) for _ in range(n)]
+    outcomes: dict[bool, list[float]] = {True: [], False: []}
+    steps = 0
+    while steps < args.steps_per_iteration:
+        labels = expert.act_batch(infos)
+        with torch.no_grad():
+            mu = model(torch.from_numpy(obs))[0].numpy()
+        noisy = labels + rng.normal(0.0, args.expert_noise, labels.shape).astype(np.float32)
+        action = np.where(by_expert[:, None], np.clip(noisy, -1, 1), np.clip(mu, -1, 1))
+        for j in range(n):
+            episode[j][0].append(obs[j].copy())
+            episode[j][1].append(labels[j])
+        obs, _, terminated, truncated, infos = envs.step(action)
+        for j in np.nonzero(np.logical_or(terminated, truncated))[0]:
+            steps += len(episode[j][0])
+            bar.update(len(episode[j][0]))
+            data.add(*episode[j])
+            episode[j] = ([], [])
+            outcomes[bool(by_expert[j])].append(float(infos["final_info"]["is_success"][j]))
+            by_expert[j] = rng.random() < beta
+    student, teacher = outcomes[False], outcomes[True]
+    return {"beta": round(beta, 4), "episodes": len(student) + len(teacher), "steps": steps,
+            "success_rate": round(float(np.mean(student)), 3) if student else "",
+            "expert_success_rate": round(float(np.mean(teacher)), 3) if teacher else ""}
+
+
+def make_envs(args: DAggerArgs, image_size: int) -> VectorEnv:
+    factories = [partial(_worker_env, args.task, args.config, NO_SHAPING, image_size)
+                 for _ in range(args.num_envs)]
+    if args.workers == 0:
+        return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
+    return AsyncVectorEnv(factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP,
+                          shared_memory=True)
+
+
+def plot_curve(metrics_csv: Path, png: Path) -> None:
+    """Student success per iteration (its own rollouts) and the regression loss."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with metrics_csv.open() as handle:
+        rows = list(csv.DictReader(handle))
+    fig, (ax_succ, ax_loss) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    done = [r for r in rows if r["success_rate"]]
+    ax_succ.plot([int(r["global_step"]) for r in done],
+                 [float(r["success_rate"]) for r in done], "o-", color="tab:green",
+                 label="student drives")
+    ax_succ.set_ylim(-0.05, 1.05)
+    ax_succ.set_ylabel("success rate (rollouts)")
+    ax_succ.legend(loc="lower right")
+    ax_loss.plot([int(r["global_step"]) for r in rows], [float(r["loss"]) for r in rows], "o-")
+    ax_loss.set_yscale("log")
+    ax_loss.set_ylabel("imitation loss (MSE)")
+    ax_loss.set_xlabel("environment steps")
+    fig.suptitle("jetbot-train DAgger learning curve")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+
+
+def train(args: DAggerArgs) -> dict[str, Any]:
+    """Run DAgger; writes checkpoint, ONNX, metrics and curve to ``args.out``; returns a
+    summary. Ctrl-C: writes them as they are and raises ``Interrupted``."""
+    if args.task != "seek":
+        raise UsageError(f"--algo dagger has an expert for task seek only, not {args.task!r}")
+    if args.num_envs <= 0:
+        raise UsageError(f"--num-envs must be > 0, got {args.num_envs}")
+    if args.workers not in (None, 0, args.num_envs):
+        raise UsageError(f"--workers must be 0 or --num-envs ({args.num_envs}), got "
+                         f"{args.workers}")
+    out = Path(args.out)
+    _prepare_out(out)
+    checkpoint_path, metrics_path = out / CHECKPOINT_NAME, out / METRICS_NAME
+    torch.manual_seed(args.seed)
+    model = ActorCritic(args.model)
+    if args.init:
+        model = model_from_checkpoint(load_checkpoint(args.init))
+    optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
+    iteration, global_step, wall_before = 0, 0, 0.0
+    if args.resume and checkpoint_path.exists():
+        state = load_checkpoint(checkpoint_path)
+        if state["task"] != args.task or state.get("algo") != "dagger":
+            raise UsageError(f"{checkpoint_path} is not a DAgger checkpoint for {args.task!r}")
+        model = model_from_checkpoint(state)
+        optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
+        optimizer.load_state_dict(state["optimizer"])
+        iteration, global_step, wall_before = (state["update"], state["global_step"],
+                                               state["wall_s"])
+    elif metrics_path.exists():
+        metrics_path.unlink()
+    model.eval()
+    rng = np.random.default_rng(args.seed + iteration)
+    max_speed = max_speed_of(args.config, get_task(args.task))
+    expert = Expert()
+    envs = make_envs(args, model.config.image_size)
+    data = Dataset(envs.single_observation_space.shape)
+    start = time.perf_counter()
+    total = args.iterations * args.steps_per_iteration
+    bar = tqdm(total=total, initial=min(global_step, total), disable=not args.progress,
+               unit="step", dynamic_ncols=True)
+    interrupted = False
+
+    def save() -> None:
+        save_checkpoint(checkpoint_path, {
+            "task": args.task, "algo": "dagger", "model": model.state_dict(),
+            "model_config": model.config.to_dict(), "optimizer": optimizer.state_dict(),
+            "global_step": global_step, "update": iteration,
+            "wall_s": wall_before + time.perf_counter() - start, "max_speed": max_speed,
+            "args": {k: v for k, v in asdict(args).items() if k not in ("config", "model")},
+        })
+
+    try:
+        while iteration < args.iterations:
+            torch.set_num_threads(1)
+            began = time.perf_counter()
+            row = collect(envs, model, expert, data, args, iteration, rng, bar)
+            global_step += row.pop("steps")
+            torch.set_num_threads(args.torch_threads)
+            collected = time.perf_counter()
+            loss = regress(model, optimizer, data, args, rng)
+            iteration += 1
+            row.update(iteration=iteration, global_step=global_step, dataset=len(data),
+                       loss=round(loss, 5), collect_s=round(collected - began, 1),
+                       regress_s=round(time.perf_counter() - collected, 1),
+                       wall_s=round(wall_before + time.perf_counter() - start, 1))
+            _write_metrics_row(metrics_path, row, METRIC_FIELDS)
+            bar.set_postfix(succ=row["success_rate"], loss=row["loss"], refresh=False)
+            save()
+    except KeyboardInterrupt:
+        interrupted = True
+        save()
+    finally:
+        bar.close()
+        envs.close()
+    export_model(model.eval(), out / POLICY_NAME, task=args.task, max_speed=max_speed)
+    if metrics_path.exists():
+        plot_curve(metrics_path, out / CURVE_NAME)
+    wall = wall_before + time.perf_counter() - start
+    summary = {"global_step": global_step, "updates": iteration, "wall_s": wall,
+               "steps_per_s": round(global_step / max(wall, 1e-9), 1),
+               "checkpoint": str(checkpoint_path), "policy": str(out / POLICY_NAME)}
+    if interrupted:
+        raise Interrupted(summary)
+    return summary
+
+
+__all__ = ["DAggerArgs", "Dataset", "dagger_args", "regress", "train"]

@@ -1,0 +1,57 @@
+"""The privileged teacher: a scripted controller that reads the simulator's true state (the
+robot's pose and speed, the goal's position; never the image) and drives to the goal.
+
+DAgger (``dagger.py``) labels every frame the student sees with this controller's action.
+It is closed loop on the state, so the randomized wheel gains, dead-band and latencies need no
+model: a weak wheel shows as a bearing error that it turns away, a late stop as speed that
+moves the stop point out. Why these numbers: docs/TRAINING.md ("Training seek by DAgger").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Expert:
+    stop_distance: float = 0.13
+    """m, axle to the goal's centre: command zero from here on. Head-on contact is at
+    0.111 m, success needs < 0.15 m; the robot coasts 0.5-4.5 cm after the zero command
+    (latency up to 0.1 s, motor lag 0.05 s, up to ~0.3 m/s), touching at most without
+    pushing the block 3 cm."""
+    stop_lead: float = 0.0
+    """s; moves the stop point out by speed * this. 0: the stop is a function of where the
+    block is, which the camera shows; speed a single frame hardly shows, and a stop that
+    depends on it gave the student contradictory labels (it stalled 2-4 cm short)."""
+    turn_gain: float = 2.5
+    """Turn command per rad of bearing error."""
+    forward_gain: float = 4.0
+    """Forward command per m beyond the stop point."""
+    min_forward: float = 0.75
+    """The slowest forward command while driving: the dead-band (up to 0.3 of duty) eats
+    0.6 of the command at max_speed 0.5, so less would stall."""
+
+    def act(self, pose: np.ndarray, goal_xy: np.ndarray, speed: float) -> np.ndarray:
+        """``[left, right]`` in [-1, 1] for one robot."""
+        x, y, yaw = (float(v) for v in pose)
+        dx, dy = float(goal_xy[0]) - x, float(goal_xy[1]) - y
+        distance = math.hypot(dx, dy)
+        error = math.atan2(dy, dx) - yaw
+        error = math.atan2(math.sin(error), math.cos(error))
+        beyond = distance - (self.stop_distance + self.stop_lead * speed)
+        if beyond <= 0.0:
+            return np.zeros(2, dtype=np.float32)
+        turn = float(np.clip(self.turn_gain * error, -1.0, 1.0))
+        forward = float(np.clip(self.forward_gain * beyond, self.min_forward, 1.0))
+        forward *= max(math.cos(error), 0.0)
+        left, right = forward - turn, forward + turn
+        return np.clip(np.array([left, right], dtype=np.float32), -1.0, 1.0)
+
+    def act_batch(self, infos: dict[str, Any]) -> np.ndarray:
+        """Actions ``[N, 2]`` from a vector env's ``infos`` (``pose``, ``goal_xy``, ``speed``)."""
+        return np.stack([self.act(p, g, float(s)) for p, g, s in
+                         zip(infos["pose"], infos["goal_xy"], infos["speed"], strict=True)])

@@ -1,0 +1,106 @@
+"""DAgger for seek: the privileged expert (pure control law, then driving the real sim with
+randomization on), the student's regression, and ``jetbot-train train --algo dagger`` end to
+end (checkpoint, ONNX the runtime's evaluation loads, metrics, curve)."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_train_cli import train_cli
+
+from jetbot_rt.train.expert import Expert
+
+pytest.importorskip("pybullet")
+
+EXPERT = Expert()
+
+
+def test_expert_turns_toward_the_goal_and_stops_short_of_it():
+    ahead_left = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.6, 0.1]), 0.0)
+    ahead_right = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.6, -0.1]), 0.0)
+    assert ahead_left[1] > ahead_left[0] > 0 and ahead_right[0] > ahead_right[1] > 0
+    behind = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([-0.5, 0.01]), 0.0)
+    assert behind[0] == pytest.approx(-behind[1])  # turns in place, no forward
+    straight = EXPERT.act(np.array([0.0, 0.0, math.pi / 2]), np.array([0.0, 1.0]), 0.0)
+    assert straight.tolist() == pytest.approx([1.0, 1.0])
+    near = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([EXPERT.stop_distance - 0.01, 0]), 0)
+    assert near.tolist() == [0.0, 0.0]
+    lead = Expert(stop_lead=0.15)
+    fast = lead.act(np.array([0.0, 0.0, 0.0]), np.array([lead.stop_distance + 0.02, 0]), 0.3)
+    assert fast.tolist() == [0.0, 0.0]  # with a lead, moving: stops earlier
+    for action in (ahead_left, ahead_right, behind, straight):
+        assert np.all(np.abs(action) <= 1.0)
+
+
+def test_expert_succeeds_on_randomized_seek_episodes():
+    """It reads only the state in ``info``; randomization (gains, dead-band, latencies) on."""
+    from jetbot_rt.train.env import JetbotEnv
+
+    env = JetbotEnv("seek")
+    try:
+        for seed in (10_000, 10_001, 10_002):
+            _, info = env.reset(seed=seed)
+            done = False
+            while not done:
+                action = EXPERT.act(info["pose"], info["goal_xy"], info["speed"])
+                _, _, terminated, truncated, info = env.step(action)
+                done = terminated or truncated
+            assert info["is_success"], (seed, info["distance"], env.sim_params)
+    finally:
+        env.close()
+
+
+def test_regression_fits_the_labels():
+    from jetbot_rt.train.dagger import Dataset, dagger_args, regress
+    from jetbot_rt.train.model import ActorCritic
+
+    args = dagger_args("seek", {"train_samples": 2048, "batch_size": 32, "learning_rate": 3e-3})
+    rng = np.random.default_rng(0)
+    data = Dataset((56, 56, 3))
+    frames = rng.integers(0, 256, (8, 56, 56, 3), dtype=np.uint8)
+    frames[:4, :, :, 0] = 255  # red-ish frames: drive; the others: stop
+    labels = np.array([[0.8, 0.9]] * 4 + [[0.0, 0.0]] * 4, dtype=np.float32)
+    data.add(list(frames), list(labels))
+    torch.manual_seed(0)
+    model = ActorCritic(args.model)
+    optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
+    regress(model, optimizer, data, args, rng)
+    with torch.no_grad():
+        mu = model(torch.from_numpy(frames))[0].numpy()
+    assert np.abs(mu - labels).max() < 0.1
+
+
+def test_train_algo_dagger_writes_the_run_directory(tmp_path):
+    out = tmp_path / "seek"
+    result = train_cli("train", "--task", "seek", "--algo", "dagger", "--iterations", "2",
+                       "--steps-per-iteration", "20", "--train-samples", "64",
+                       "--num-envs", "1", "--workers", "0", "--out", str(out), "--no-progress")
+    assert result.returncode == 0, result.stderr
+    for name in ("checkpoint.pt", "policy.onnx", "metrics.csv", "learning_curve.png"):
+        assert (out / name).stat().st_size > 0, name
+    with (out / "metrics.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert [r["iteration"] for r in rows] == ["1", "2"]
+    assert rows[0]["expert_success_rate"] and not rows[0]["success_rate"]  # expert drove
+    assert int(rows[1]["dataset"]) > int(rows[0]["dataset"]) >= 20
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert (state["task"], state["algo"], state["update"]) == ("seek", "dagger", 2)
+    from jetbot_rt.config import Config
+    from jetbot_rt.train.evaluate import load_policy
+
+    policy = load_policy(out / "policy.onnx", Config())
+    assert policy.metadata["jetbot_rt.task"] == "seek" and policy.max_speed == 0.5
+
+
+def test_dagger_needs_an_expert_and_refuses_other_algorithms_flags(tmp_path):
+    forward = train_cli("train", "--task", "forward", "--algo", "dagger", "--out",
+                        str(tmp_path / "f"))
+    assert forward.returncode == 2 and "seek only" in forward.stderr
+    mixed = train_cli("train", "--task", "seek", "--gamma", "0.9", "--out", str(tmp_path / "m"))
+    assert mixed.returncode == 2
+    assert mixed.stderr.strip() == ("jetbot-train train: error: --gamma is not an option of "
+                                    "--algo dagger")
