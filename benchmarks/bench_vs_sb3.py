@@ -13,6 +13,12 @@ SB3 is configured only as its documentation advises for image observations: ``Cn
 the RL Zoo's Atari PPO hyperparameters (n_steps 128, batch 256, 4 epochs, lr 2.5e-4 and
 clip 0.1 both annealed linearly, ent_coef 0.01, vf_coef 0.5), and ``VecNormalize`` for the
 reward only (the Zoo's setting for PyBullet tasks). Ours runs with its task defaults.
+
+For seek, a third row: jetbot-train's DAgger (``--algo dagger``, the way the bundled seek
+policy is trained) in the same budget. It is not like for like: DAgger's expert reads the
+simulator's state (robot pose, goal position) at training time, which SB3's PPO (and ours)
+never sees; the student it trains sees only the camera at run time, as the PPO policies do.
+``--no-dagger`` leaves that row out.
 """
 
 from __future__ import annotations
@@ -38,9 +44,11 @@ RESULTS = Path(__file__).resolve().parent / "results"
 JETBOT_TRAIN = shutil.which("jetbot-train") or str(Path(sys.executable).parent / "jetbot-train")
 
 
-def train_ours(task: str, budget_s: float, num_envs: int, out: Path) -> dict[str, Any]:
+def train_ours(task: str, budget_s: float, num_envs: int, out: Path,
+               algo: str = "ppo") -> dict[str, Any]:
     """``jetbot-train train`` stopped by Ctrl-C at the budget: it saves and exports then."""
-    args = [JETBOT_TRAIN, "train", "--task", task, "--timesteps", "100000000",
+    length = ["--timesteps", "100000000"] if algo == "ppo" else ["--iterations", "10000"]
+    args = [JETBOT_TRAIN, "train", "--task", task, "--algo", algo, *length,
             "--num-envs", str(num_envs), "--out", str(out), "--no-progress"]
     start = time.perf_counter()
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -54,8 +62,9 @@ def train_ours(task: str, budget_s: float, num_envs: int, out: Path) -> dict[str
         raise RuntimeError(f"jetbot-train wrote no policy: {stderr[-2000:]}")
     with (out / "metrics.csv").open() as handle:
         last = list(csv.DictReader(handle))[-1]
-    return {"env_steps": int(last["global_step"]), "train_wall_s": float(last["wall_s"]),
-            "env_steps_per_s": float(last["steps_per_s"]),
+    steps, wall = int(last["global_step"]), float(last["wall_s"])
+    return {"env_steps": steps, "train_wall_s": wall,
+            "env_steps_per_s": float(last.get("steps_per_s") or round(steps / wall, 1)),
             "command_wall_s": round(time.perf_counter() - start, 1)}
 
 
@@ -131,6 +140,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--tag", default="", help="suffix of the result files (a host name)")
+    parser.add_argument("--no-dagger", action="store_true",
+                        help="leave out the DAgger row (seek only; privileged expert)")
     args = parser.parse_args()
     from jetbot_rt.train.evaluate import evaluate
 
@@ -145,6 +156,14 @@ def main() -> None:
         rows["jetbot-train PPO"]["success_rate"] = evaluate(
             ours_dir / "policy.onnx", task=args.task, episodes=args.episodes,
             num_workers=args.num_envs)["success_rate"]
+        if args.task == "seek" and not args.no_dagger:
+            dagger_dir = Path(tmp) / "dagger"
+            name = "jetbot-train DAgger (privileged expert at training time)"
+            rows[name] = train_ours(args.task, args.budget_s, args.num_envs, dagger_dir,
+                                    "dagger")
+            rows[name]["success_rate"] = evaluate(
+                dagger_dir / "policy.onnx", task=args.task, episodes=args.episodes,
+                num_workers=args.num_envs)["success_rate"]
         rows["Stable-Baselines3 PPO"]["success_rate"] = evaluate_sb3(
             sb3_dir / "sb3_ppo.zip", args.task, args.episodes, 10_000)
     import stable_baselines3

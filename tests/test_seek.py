@@ -190,3 +190,18 @@ def test_driving_blind_straight_ahead_fails_seek(tmp_path):
     result = evaluate(path, task="seek", episodes=6, ablate="constant-forward")
     assert result["success_rate"] <= 1 / 6
     assert result["mean_final_distance"] > 0.15
+
+
+def test_the_bundled_seek_policy_sees():
+    """On the evaluation's first episodes (seeds 10000.., randomization on): the bundled seek
+    policy succeeds; fed a blank grey image it fails; fed BGR frames (the seed's camera seam)
+    it loses at least half. The full 100-episode figures are in docs/TRAINING.md."""
+    from jetbot_rt.policy import bundled_policy_path
+    from jetbot_rt.train.evaluate import evaluate
+
+    assert bundled_policy_path("seek").is_file()
+    rates = {ablate: evaluate(task="seek", episodes=4, ablate=ablate)["success_rate"]
+             for ablate in (None, "blank", "bgr")}
+    assert rates[None] >= 0.75, rates
+    assert rates["blank"] <= 0.25, rates
+    assert rates["bgr"] <= rates[None] / 2, rates

@@ -55,3 +55,30 @@ class Expert:
         """Actions ``[N, 2]`` from a vector env's ``infos`` (``pose``, ``goal_xy``, ``speed``)."""
         return np.stack([self.act(p, g, float(s)) for p, g, s in
                          zip(infos["pose"], infos["goal_xy"], infos["speed"], strict=True)])
+
+
+def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek") -> float:
+    """The expert's own success rate on the evaluation's episodes (seed + i, the task's
+    randomization on): what the student can at best reach."""
+    from jetbot_rt.train.env import JetbotEnv
+
+    env, expert, successes = JetbotEnv(task), Expert(), 0
+    try:
+        for i in range(episodes):
+            _, info = env.reset(seed=seed + i)
+            done = False
+            while not done:
+                action = expert.act(info["pose"], info["goal_xy"], info["speed"])
+                _, _, terminated, truncated, info = env.step(action)
+                done = terminated or truncated
+            successes += bool(info["is_success"])
+    finally:
+        env.close()
+    return successes / episodes
+
+
+if __name__ == "__main__":  # python -m jetbot_rt.train.expert [EPISODES]
+    import sys
+
+    count = int(sys.argv[1]) if len(sys.argv) > 1 else 100
+    print(f"expert success {evaluate_expert(count):.0%} over {count} seek episodes")
