@@ -23,8 +23,10 @@ def test_expert_turns_toward_the_goal_and_stops_short_of_it():
     ahead_left = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.6, 0.1]), 0.0)
     ahead_right = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.6, -0.1]), 0.0)
     assert ahead_left[1] > ahead_left[0] > 0 and ahead_right[0] > ahead_right[1] > 0
+    for side in (0.5, -0.5):  # out of view: spins left in place whichever side it is on
+        out_of_view = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.2, side]), 0.0)
+        assert out_of_view.tolist() == [-1.0, 1.0]
     behind = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([-0.5, 0.01]), 0.0)
-    assert behind[0] == pytest.approx(-behind[1])  # turns in place, no forward
     straight = EXPERT.act(np.array([0.0, 0.0, math.pi / 2]), np.array([0.0, 1.0]), 0.0)
     assert straight.tolist() == pytest.approx([1.0, 1.0])
     near = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([EXPERT.stop_distance - 0.01, 0]), 0)
@@ -66,7 +68,7 @@ def test_regression_fits_the_labels():
 def test_train_algo_dagger_writes_the_run_directory(tmp_path):
     out = tmp_path / "seek"
     result = train_cli("train", "--task", "seek", "--algo", "dagger", "--iterations", "2",
-                       "--steps-per-iteration", "20", "--train-samples", "64",
+                       "--steps-per-iteration", "20", "--train-samples", "64", "--beta", "1",
                        "--num-envs", "1", "--workers", "0", "--out", str(out), "--no-progress")
     assert result.returncode == 0, result.stderr
     for name in ("checkpoint.pt", "policy.onnx", "metrics.csv", "learning_curve.png"):
@@ -93,3 +95,35 @@ def test_dagger_needs_an_expert_and_refuses_other_algorithms_flags(tmp_path):
     assert mixed.returncode == 2
     assert mixed.stderr.strip() == ("jetbot-train train: error: --gamma is not an option of "
                                     "--algo dagger")
+
+
+def test_ctrl_c_saves_exports_and_resumes_from_the_iteration(tmp_path, monkeypatch):
+    """Ctrl-C (a KeyboardInterrupt in the regression of iteration 2) writes the checkpoint of
+    the last finished iteration, the ONNX and the curve; --resume goes on from there."""
+    from jetbot_rt.train import dagger
+    from jetbot_rt.train.ppo import Interrupted
+
+    args = dagger.dagger_args("seek", {"iterations": 2, "steps_per_iteration": 10,
+                                       "train_samples": 32, "num_envs": 1, "workers": 0,
+                                       "beta": 1.0, "out": str(tmp_path), "progress": False})
+    real = dagger.regress
+    calls = []
+
+    def interrupted_second_time(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(dagger, "regress", interrupted_second_time)
+    with pytest.raises(Interrupted) as stop:
+        dagger.train(args)
+    assert stop.value.summary["updates"] == 1
+    assert torch.load(tmp_path / "checkpoint.pt", weights_only=True)["update"] == 1
+    assert (tmp_path / "policy.onnx").stat().st_size > 0
+    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+    monkeypatch.setattr(dagger, "regress", real)
+    args.resume = True
+    assert dagger.train(args)["updates"] == 2
+    with (tmp_path / "metrics.csv").open() as handle:
+        assert [r["iteration"] for r in csv.DictReader(handle)] == ["1", "2"]

@@ -31,6 +31,13 @@ class Expert:
     """Turn command per rad of bearing error."""
     forward_gain: float = 4.0
     """Forward command per m beyond the stop point."""
+    search_bearing_deg: float = 30.0
+    """Beyond this bearing error the goal is out of the camera's view (its half field of view
+    is 41 degrees nominal, 34 at the narrowest randomized one): spin left in place, whichever
+    side the goal is on. A student that sees only the frame cannot know that side, and labels
+    that said "turn toward it" averaged to zero there: it stalled."""
+    search_turn: float = 1.0
+    """The spin's command per wheel (-, +)."""
     min_forward: float = 0.75
     """The slowest forward command while driving: the dead-band (up to 0.3 of duty) eats
     0.6 of the command at max_speed 0.5, so less would stall."""
@@ -45,6 +52,8 @@ class Expert:
         beyond = distance - (self.stop_distance + self.stop_lead * speed)
         if beyond <= 0.0:
             return np.zeros(2, dtype=np.float32)
+        if abs(error) > math.radians(self.search_bearing_deg):
+            return np.array([-self.search_turn, self.search_turn], dtype=np.float32)
         turn = float(np.clip(self.turn_gain * error, -1.0, 1.0))
         forward = float(np.clip(self.forward_gain * beyond, self.min_forward, 1.0))
         forward *= max(math.cos(error), 0.0)
