@@ -41,7 +41,7 @@ def trajectory(policy_task: str, gain: list[float]) -> tuple[np.ndarray, dict]:
 
 
 def main() -> None:
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(7, 5))
     for task, gain, style in [("forward", [1.0, 1.0], ":"), ("forward", WEAK, "-"),
                               ("seek", WEAK, "-")]:
         path, info = trajectory(task, gain)
@@ -52,16 +52,16 @@ def main() -> None:
     ax.add_patch(plt.Circle((0.3, 0.0), 0.15, fill=False, ls="--", color="grey"))
     ax.plot([-0.6], [0.0], "ko")
     ax.set_aspect("equal")
-    ax.set_xlim(-0.7, 1.5)
-    ax.set_ylim(-1.5, 0.5)
+    ax.set_xlim(-0.7, 0.6)
+    ax.set_ylim(-0.6, 0.2)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title("Right wheel 15 % weak, the forward task's scene (start: black dot; "
                  "success circle 0.15 m)", fontsize=9)
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15))
     fig.tight_layout()
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(OUT, dpi=100)
+    fig.savefig(OUT, dpi=100, bbox_inches="tight")
     print(f"wrote {OUT}")
 
 

@@ -164,6 +164,7 @@ def test_wheel_carries_policies_assets_and_unit_template(tmp_path):
     names = set(zipfile.ZipFile(wheel).namelist())
     wanted = [
         "jetbot_rt/policies/forward.onnx",
+        "jetbot_rt/policies/seek.onnx",
         "jetbot_rt/data/jetbot-rt.service",
         "jetbot_rt/data/default-config.toml",
         "jetbot_rt/hal/motors.py",

@@ -205,3 +205,14 @@ def test_the_bundled_seek_policy_sees():
     assert rates[None] >= 0.75, rates
     assert rates["blank"] <= 0.25, rates
     assert rates["bgr"] <= rates[None] / 2, rates
+
+
+def test_run_without_policy_drives_the_bundled_policy_of_the_sim_task():
+    from jetbot_rt.config import Config, from_dict
+    from jetbot_rt.policy import bundled_task, resolve_policy_path
+
+    assert bundled_task(Config()) == "forward"
+    seek = from_dict({"sim": {"task": "seek"}})
+    assert bundled_task(seek) == "seek"
+    assert resolve_policy_path(None, bundled_task(seek)).name == "seek.onnx"
+    assert bundled_task(from_dict({"sim": {"task": "forward"}})) == "forward"
