@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_train_cli import train_cli
+from test_train_cli import train_here
 
 from jetbot_rt.train.expert import Expert
 
@@ -70,9 +70,9 @@ def test_regression_fits_the_labels():
     assert np.abs(mu - labels).max() < 0.1
 
 
-def test_train_algo_dagger_writes_the_run_directory(tmp_path):
+def test_train_algo_dagger_writes_the_run_directory(tmp_path, capsys):
     out = tmp_path / "seek"
-    result = train_cli("train", "--task", "seek", "--algo", "dagger", "--iterations", "2",
+    result = train_here(capsys, "train", "--task", "seek", "--algo", "dagger", "--iterations", "2",
                        "--steps-per-iteration", "20", "--train-samples", "64", "--beta", "1",
                        "--num-envs", "1", "--workers", "0", "--out", str(out), "--no-progress")
     assert result.returncode == 0, result.stderr
@@ -92,11 +92,12 @@ def test_train_algo_dagger_writes_the_run_directory(tmp_path):
     assert policy.metadata["jetbot_rt.task"] == "seek" and policy.max_speed == 0.5
 
 
-def test_dagger_needs_an_expert_and_refuses_other_algorithms_flags(tmp_path):
-    forward = train_cli("train", "--task", "forward", "--algo", "dagger", "--out",
+def test_dagger_needs_an_expert_and_refuses_other_algorithms_flags(tmp_path, capsys):
+    forward = train_here(capsys, "train", "--task", "forward", "--algo", "dagger", "--out",
                         str(tmp_path / "f"))
     assert forward.returncode == 2 and "seek only" in forward.stderr
-    mixed = train_cli("train", "--task", "seek", "--gamma", "0.9", "--out", str(tmp_path / "m"))
+    mixed = train_here(capsys, "train", "--task", "seek", "--gamma", "0.9", "--out",
+                       str(tmp_path / "m"))
     assert mixed.returncode == 2
     assert mixed.stderr.strip() == ("jetbot-train train: error: --gamma is not an option of "
                                     "--algo dagger")
