@@ -93,12 +93,12 @@ def write_markdown(result: dict, path: Path) -> None:
         lines += [f"Note: {result['note']}", ""]
     if "throughput" in result:
         rows = result["throughput"]
-        by = {(r["num_envs"], r["path"]): r for r in rows}
         new = next(r for r in rows if r["path"] == "train")
         lines += [
             "## PPO throughput (end to end: render, policy, update)", "",
             f"{rows[0]['timesteps']} env steps per run, one env per worker process; env "
-            "steps/s in the training loop (with worker start and ONNX export). 1-min load "
+            "steps/s in the training loop, the best of the rounds (each round runs every "
+            "setting once, in this order) and all of them in brackets. 1-min load "
             f"average {result.get('loadavg_1min_at_start')} at start, "
             f"{result.get('loadavg_1min_at_end')} at the end.", "",
             "| worker processes | 224x224 path (pool 4, 240 Hz, old recipe) | "
@@ -109,13 +109,12 @@ def write_markdown(result: dict, path: Path) -> None:
             "| --- | --- | --- | --- | --- | --- |",
         ]
         for n in sorted({r["num_envs"] for r in rows}):
-            cells = [by.get((n, s)) for s in SETTINGS]
-            shown = [f"{r['env_steps_per_s_training_loop']} "
-                     f"({r['env_steps_per_s_with_startup_and_export']})" if r else "-"
-                     for r in cells]
-            now = cells[2]["env_steps_per_s_training_loop"] if cells[2] else None
-            ratios = [f"x{now / r['env_steps_per_s_training_loop']:.2f}" if now and r else "-"
-                      for r in cells[:2]]
+            runs = [[r["env_steps_per_s_training_loop"] for r in rows
+                     if r["num_envs"] == n and r["path"] == setting] for setting in SETTINGS]
+            shown = [f"{max(v)}" + (f" (of {', '.join(map(str, v))})" if len(v) > 1 else "")
+                     if v else "-" for v in runs]
+            now = max(runs[2]) if runs[2] else None
+            ratios = [f"x{now / max(v):.2f}" if now and v else "-" for v in runs[:2]]
             lines.append(f"| {n} | {shown[0]} | {shown[1]} | **{shown[2]}** | "
                          f"{ratios[0]} | {ratios[1]} |")
         lines.append("")
@@ -161,6 +160,8 @@ def main() -> None:
                         help="wall-clock of that whole command, timed outside it")
     parser.add_argument("--episodes", type=int, default=0,
                         help="evaluate the bundled policy over this many episodes (0: skip)")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="run every setting this many times, interleaved (a shared machine)")
     parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=list(SETTINGS),
                         help="throughput settings to run (default: all three)")
     parser.add_argument("--note", default="", help="e.g. what else shared the CPU")
@@ -179,8 +180,8 @@ def main() -> None:
     if args.throughput_steps > 0:
         result["loadavg_1min_at_start"] = round(os.getloadavg()[0], 2)
         result["throughput"] = [
-            measure_throughput(args.throughput_steps, n, setting)
-            for n in args.processes for setting in args.settings
+            {**measure_throughput(args.throughput_steps, n, setting), "round": k}
+            for n in args.processes for k in range(args.rounds) for setting in args.settings
         ]
         result["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     if args.train_run is not None:

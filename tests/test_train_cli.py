@@ -35,7 +35,7 @@ METADATA = {
 
 QUICK_UPDATE = ("--num-steps", "64", "--update-epochs", "1", "--num-minibatches", "2")
 """Smoke runs: two rollouts of 64 steps, one pass of two minibatches per update (the
-defaults' 8 epochs x 4 minibatches took most of each run's time and prove nothing more)."""
+defaults' update epochs took most of each run's time and prove nothing more)."""
 SMOKE = ("train", "--task", "forward", "--timesteps", "128", "--num-envs", "1", "--workers", "0",
          "--seed", "3", "--no-progress", *QUICK_UPDATE)
 
