@@ -138,6 +138,24 @@ class TestLayoutPrecedence:
         assert (nchw.layout, nchw.height, nchw.width) == ("NCHW", 8, 3)
 
 
+def mean_slice_model(path: Path, shape: list[int], axes: list[int]) -> Path:
+    """An ONNX model whose ``mu`` is the first two of the input's means over ``axes``: any
+    image layout loads, so only the loader's checks of ``shape`` decide."""
+    graph = helper.make_graph(
+        [helper.make_node("ReduceMean", ["obs"], ["m"], axes=axes, keepdims=0),
+         helper.make_node("Slice", ["m", "zero", "two", "one"], ["mu"])],
+        "mean_slice", [helper.make_tensor_value_info("obs", TensorProto.FLOAT, shape)],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, None])],
+        [numpy_helper.from_array(np.array([0], np.int64), "zero"),
+         numpy_helper.from_array(np.array([2], np.int64), "two"),
+         numpy_helper.from_array(np.array([1], np.int64), "one")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path
+
+
 class TestColourChannelsCounted:
     @pytest.mark.parametrize("channels", [1, 2, 4])
     def test_an_image_input_without_three_channels_is_refused(self, tmp_path: Path,
@@ -145,21 +163,9 @@ class TestColourChannelsCounted:
         from jetbot_rt.config import PolicyConfig
         from jetbot_rt.errors import UsageError
 
-        graph = helper.make_graph(
-            [helper.make_node("ReduceMean", ["obs"], ["m"], axes=[1, 2], keepdims=0),
-             helper.make_node("Slice", ["m", "zero", "two", "one"], ["mu"])],
-            "channels", [helper.make_tensor_value_info("obs", TensorProto.FLOAT,
-                                                       [1, 8, 8, channels])],
-            [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, None])],
-            [numpy_helper.from_array(np.array([0], np.int64), "zero"),
-             numpy_helper.from_array(np.array([2], np.int64), "two"),
-             numpy_helper.from_array(np.array([1], np.int64), "one")],
-        )
-        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
-        model.ir_version = 8
-        onnx.save(model, str(tmp_path / "m.onnx"))
+        model = mean_slice_model(tmp_path / "m.onnx", [1, 8, 8, channels], [1, 2])
         with pytest.raises(UsageError, match="expected 3 colour channels in NHWC input"):
-            OnnxPolicy.load(tmp_path / "m.onnx", PolicyConfig(layout="NHWC"))
+            OnnxPolicy.load(model, PolicyConfig(layout="NHWC"))
 
 
 class TestLayoutGuess:
@@ -167,17 +173,6 @@ class TestLayoutGuess:
     def test_no_guess_without_a_dimension_of_3(self, tmp_path: Path, shape: list[int]) -> None:
         from jetbot_rt.errors import UsageError
 
-        graph = helper.make_graph(
-            [helper.make_node("ReduceMean", ["obs"], ["m"], axes=[2, 3], keepdims=0),
-             helper.make_node("Slice", ["m", "zero", "two", "one"], ["mu"])],
-            "guess", [helper.make_tensor_value_info("obs", TensorProto.FLOAT, shape)],
-            [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, None])],
-            [numpy_helper.from_array(np.array([0], np.int64), "zero"),
-             numpy_helper.from_array(np.array([2], np.int64), "two"),
-             numpy_helper.from_array(np.array([1], np.int64), "one")],
-        )
-        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
-        model.ir_version = 8
-        onnx.save(model, str(tmp_path / "m.onnx"))
+        model = mean_slice_model(tmp_path / "m.onnx", shape, [2, 3])
         with pytest.raises(UsageError, match="cannot tell the image layout"):
-            OnnxPolicy.load(tmp_path / "m.onnx")
+            OnnxPolicy.load(model)
