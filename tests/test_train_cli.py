@@ -150,10 +150,22 @@ def test_export_layout_metadata_and_parity(smoke_run, tmp_path):
         assert np.max(np.abs(g - w)) < 1e-4
 
 
-def test_eval_json_has_the_fields(smoke_run):
-    result = train_cli("eval", "--policy", str(smoke_run / "policy.onnx"), "--task", "forward",
-                       "--episodes", "1", "--num-envs", "1", "--json")
-    assert result.returncode == 0, result.stderr
+def imported_torch(importtime_log: str) -> list[str]:
+    """The torch modules in ``python -X importtime``'s log (stderr)."""
+    names = [line.rsplit("|", 1)[-1].strip() for line in importtime_log.splitlines()
+             if line.startswith("import time:")]
+    assert "jetbot_rt" in names, importtime_log[-2000:]  # the log is there
+    return [n for n in names if n == "torch" or n.startswith("torch.")]
+
+
+def test_eval_json_has_the_fields_and_never_imports_torch(smoke_run):
+    """An ONNX policy is evaluated through onnxruntime: no torch import (~2-5 s) in eval."""
+    result = subprocess.run(
+        [sys.executable, "-X", "importtime", JETBOT_TRAIN, "eval", "--policy",
+         str(smoke_run / "policy.onnx"), "--task", "forward", "--episodes", "1",
+         "--num-envs", "1", "--json"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert imported_torch(result.stderr) == []
     report = json.loads(result.stdout)  # stdout is exactly one JSON object
     assert report["episodes"] == 1
     assert 0.0 <= report["success_rate"] <= 1.0
@@ -244,6 +256,23 @@ def test_help_lists_the_tasks_and_shows_defaults(capsys):
     assert "(default 0.99)" in text and "seek: 300000" in text  # gamma, seek's timesteps
     text = " ".join(train_main(capsys, "eval", "--help")[1].split())
     assert "--ablate" in text and "(default: 10000)" in text
+
+
+def test_help_and_a_refused_flag_never_import_torch():
+    """The parser is built from torch-free dataclasses (``train/args.py``)."""
+    code = ("import sys\n"
+            "from jetbot_rt.train.cli import main\n"
+            "def code(*argv):\n"
+            "    try:\n        return main(list(argv))\n"
+            "    except SystemExit as exc:\n        return exc.code\n"
+            "assert code('--help') == 0 and code('eval', '--help') == 0\n"
+            "assert code('train', '--task', 'sideways') == 2\n"
+            "assert code('train', '--gama', '0.9') == 2\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'torch'))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"
 
 
 def test_without_the_train_extra_one_line_names_it():

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import csv
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -24,8 +24,8 @@ import torch
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 from tqdm import tqdm
 
-from jetbot_rt.config import Config
 from jetbot_rt.errors import UsageError
+from jetbot_rt.train.args import DAggerArgs, dagger_args
 from jetbot_rt.train.checkpoint import (
     CHECKPOINT_NAME,
     load_checkpoint,
@@ -35,7 +35,7 @@ from jetbot_rt.train.checkpoint import (
 from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.export import export_model
-from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.ppo import (
     CURVE_NAME,
     METRICS_NAME,
@@ -44,77 +44,12 @@ from jetbot_rt.train.ppo import (
     _prepare_out,
     _worker_env,
     _write_metrics_row,
-    usable_cores,
 )
 from jetbot_rt.train.wrappers import Shaping
 
 METRIC_FIELDS = ("iteration", "global_step", "wall_s", "collect_s", "regress_s", "dataset",
                  "beta", "episodes", "success_rate", "expert_success_rate", "loss")
 NO_SHAPING = Shaping("none", 0.0, 0.0, 0.0, 0.0)
-
-
-@dataclass
-class DAggerArgs:
-    task: str = "seek"
-    """Task name; it needs an expert (seek)."""
-    out: str = "runs/seek"
-    """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
-    config: Config = field(default_factory=Config)
-    """Runtime config: sim physics, actions (max_speed, trim, sign), loop rate."""
-    seed: int = 1
-    """Seeds torch, the episodes' scenes (iteration i, env j: seed * 100000 + i * 1000 + j)
-    and minibatch shuffling."""
-    resume: bool = False
-    """Continue from ``out/checkpoint.pt`` (network, optimizer, iteration); the aggregated
-    frames are not kept, so the dataset starts again from the student's rollouts."""
-    init: str | None = None
-    """Start from this checkpoint's network (any task)."""
-    num_envs: int = field(default_factory=lambda: usable_cores())
-    """Envs stepped together, each in a worker process of its own; one per core by default."""
-    workers: int | None = None
-    """0: all envs in the training process (SyncVectorEnv); None: one process per env."""
-    iterations: int = 12
-    """DAgger iterations (iteration 0: the expert drives)."""
-    steps_per_iteration: int = 3000
-    """Env steps collected per iteration, over all envs (finished episodes only count)."""
-    expert_noise: float = 0.3
-    """Std of the Gaussian noise on the expert's action while it drives (iteration 0 and the
-    beta share): states off the expert's path, with their corrections."""
-    beta: float = 0.5
-    """Share of episodes the expert drives in iteration 1; halves every iteration."""
-    train_samples: int = 16_000
-    """Frames regressed on after each iteration, in shuffled passes over the aggregate (a
-    fixed cost: epochs over a growing aggregate would make each iteration slower than the
-    last)."""
-    batch_size: int = 128
-    """Frames per Adam step."""
-    learning_rate: float = 1e-3
-    """Adam's step size."""
-    stop_weight: float = 4.0
-    """Loss weight of frames the expert labels stop ([0, 0]): few, and the ones that decide
-    whether the block is pushed."""
-    torch_threads: int = field(default_factory=lambda: usable_cores())
-    """Learner threads during the regression (the env workers are idle then)."""
-    progress: bool = True
-    """Show a progress bar."""
-    model: ModelConfig = field(default_factory=ModelConfig)
-    """The network (``model.py``)."""
-
-
-def dagger_args(task: str, overrides: dict[str, Any] | None = None) -> DAggerArgs:
-    """``DAggerArgs`` for ``task`` with ``overrides`` (a ``[train]`` table, then flags)."""
-    get_task(task)
-    values = {k: v for k, v in (overrides or {}).items() if k != "model"}
-    names = {f.name for f in fields(DAggerArgs)} - {"task", "config", "model"}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise UsageError(f"unknown DAgger option(s) {', '.join(unknown)} "
-                         f"(known: {', '.join(sorted(names))})")
-    model = dict((overrides or {}).get("model", {}))
-    if "channels" in model:
-        model["channels"] = tuple(model["channels"])
-    return replace(DAggerArgs(), task=task, **{"out": f"runs/{task}", **values},
-                   model=replace(ModelConfig(), **model))
 
 
 class Dataset:

@@ -11,49 +11,12 @@ About 0.2 M parameters (the seed's rl_games network had ~19 M).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import torch
 from torch import nn
 
-from jetbot_rt.train.env import POLICY_IMAGE_SIZE
+from jetbot_rt.train.args import LEGACY_IMAGE_SIZE, LEGACY_POOL, ModelConfig
 
-LEGACY_IMAGE_SIZE, LEGACY_POOL = 224, 4
-"""What a model config without ``image_size`` (written before it existed) meant."""
-
-
-@dataclass(frozen=True)
-class ModelConfig:
-    image_size: int = POLICY_IMAGE_SIZE
-    """Side of the square input image (the env renders at this size, the ONNX input has it)."""
-    pool: int = 1
-    """Area-pooling factor applied to the input before the first convolution (divides
-    ``image_size``)."""
-    channels: tuple[int, int, int] = (16, 32, 32)
-    """Output channels of the three stride-2 convolutions."""
-    hidden: int = 128
-    """Width of the fully connected layer shared by the actor and critic heads."""
-    init_log_std: float = -1.0
-    """Initial log standard deviation of the action distribution (std 0.37: the task needs
-    small, smooth steering corrections, not wide exploration)."""
-    init_mu: float = 1.0
-    """Action prior: the initial ``mu`` of both wheels (the head's bias; its weights start
-    near zero). 1.0 drives straight ahead at full command from the first rollout, so early
-    episodes already reach the block and PPO only has to learn the steering."""
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict) -> ModelConfig:
-        if "image_size" not in data:
-            data = {**data, "image_size": LEGACY_IMAGE_SIZE, "pool": data.get("pool", LEGACY_POOL)}
-        return cls(**{**data, "channels": tuple(data["channels"])})
-
-    def __post_init__(self) -> None:
-        if self.image_size < 8 or self.pool < 1 or self.image_size % self.pool:
-            raise ValueError(f"image_size {self.image_size} must be >= 8 and a multiple of "
-                             f"pool {self.pool}")
+__all__ = ["LEGACY_IMAGE_SIZE", "LEGACY_POOL", "ActorCritic", "ModelConfig"]
 
 
 def _layer_init(layer: nn.Module, gain: float) -> nn.Module:
@@ -68,7 +31,7 @@ class ActorCritic(nn.Module):
     PPO's batch of 2 frames per step the checks cost about as much as the network itself
     (benchmarks/bench_train.py turns them on for its baseline)."""
 
-    def __init__(self, config: ModelConfig = ModelConfig()) -> None:
+    def __init__(self, config: ModelConfig = ModelConfig()) -> None:  # noqa: B008 (frozen)
         super().__init__()
         self.config = config
         c1, c2, c3 = config.channels

@@ -87,9 +87,7 @@ def _add(group: argparse._ArgumentGroup, flags: list[str], dest: str, spec: data
 def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
     """One ``--field-name`` per ``PPOArgs`` field, per ``DAggerArgs`` field that PPO has not,
     and ``--model-name`` per ``ModelConfig``."""
-    from jetbot_rt.train.dagger import DAggerArgs
-    from jetbot_rt.train.model import ModelConfig
-    from jetbot_rt.train.ppo import TASK_DEFAULTS, PPOArgs
+    from jetbot_rt.train.args import TASK_DEFAULTS, DAggerArgs, ModelConfig, PPOArgs
 
     group = parser.add_argument_group("PPO options (also settable in a [train] table)")
     docs = field_docs(PPOArgs)
@@ -122,8 +120,7 @@ def overrides(namespace: argparse.Namespace, table: dict[str, Any] | None,
     """The ``[train]`` table updated with the flags given on the command line; a flag of the
     other algorithm is an error."""
     from jetbot_rt.errors import UsageError
-    from jetbot_rt.train.dagger import DAggerArgs
-    from jetbot_rt.train.ppo import PPOArgs
+    from jetbot_rt.train.args import DAggerArgs, PPOArgs
 
     known = {"ppo": PPOArgs, "dagger": DAggerArgs}
     names = {f.name for f in dataclasses.fields(known[algo])} - set(SKIPPED)

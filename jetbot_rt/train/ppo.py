@@ -15,11 +15,10 @@ from __future__ import annotations
 import csv
 import math
 import multiprocessing
-import os
 import signal
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from tqdm import tqdm
 
 from jetbot_rt.config import Config
 from jetbot_rt.errors import UsageError
+from jetbot_rt.train.args import TASK_DEFAULTS, PPOArgs, ppo_args, usable_cores
 from jetbot_rt.train.checkpoint import (
     CHECKPOINT_NAME,
     load_checkpoint,
@@ -40,7 +40,7 @@ from jetbot_rt.train.checkpoint import (
 from jetbot_rt.train.device import resolve_device, to_cpu
 from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.export import export_model
-from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.ray_workers import WorkersLost
 from jetbot_rt.train.wrappers import Shaping, make_train_env, normalize_rewards
 
@@ -54,159 +54,12 @@ METRIC_FIELDS = (
 )
 
 
-def usable_cores() -> int:
-    """Cores this process may run on (``taskset``, cgroup cpusets), else the CPU count."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 class Interrupted(Exception):
     """Ctrl-C during training; the checkpoint, curve and policy were written."""
 
     def __init__(self, summary: dict[str, Any]) -> None:
         super().__init__("interrupted")
         self.summary = summary
-
-
-@dataclass
-class PPOArgs:
-    task: str = "forward"
-    """Task name (see ``jetbot_rt.sim.tasks.TASKS``)."""
-    total_timesteps: int = 40_000
-    """Environment steps to collect in total, over all envs."""
-    num_envs: int = field(default_factory=lambda: usable_cores())
-    """Envs stepped together, each with its own PyBullet client; one per core by default."""
-    workers: int | None = None
-    """Env worker processes: None (default) runs each env in a process of its own
-    (``AsyncVectorEnv``); 0 runs them all in the training process (``SyncVectorEnv``: no
-    process start or pickling, one core). With ``ray``: the Ray actors hosting the envs
-    (1 .. num_envs; default one per CPU of the cluster, at most num_envs)."""
-    ray: str | None = None
-    """Env workers as actors on a Ray cluster (``ray_workers.py``): "local" starts Ray on this
-    machine, "auto" joins the cluster this machine is part of, HOST:PORT or ray://HOST:PORT
-    another; None (default): no Ray, not even imported."""
-    ray_max_restarts: int = 3
-    """With ``ray``: how many times Ray restarts each env worker (its process or node lost)
-    before the run gives up (checkpoint kept, exit 75). Raise it on preemptible nodes."""
-    device: str = "auto"
-    """Where the learner (network, rollout buffers, optimizer, the rollout's forward pass)
-    runs: "auto" (CUDA when torch sees a GPU, else the CPU), "cpu", "cuda" or "cuda:N". Env
-    workers and Ray actors never see it: actions go to them as CPU numpy."""
-    out: str = "runs/forward"
-    """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
-    config: Config = field(default_factory=Config)
-    """Runtime config: sim physics, actions (max_speed, trim, sign), loop rate."""
-    seed: int = 1
-    """Seeds torch, the env start noise (env i gets seed + i) and minibatch shuffling."""
-    resume: bool = False
-    """Continue from ``out/checkpoint.pt`` (model, optimizer, step count, reward scale)."""
-    init: str | None = None
-    """Start from this checkpoint's network (any task: e.g. forward -> seek); a fresh
-    optimizer, step count and reward scale."""
-    num_steps: int = 128
-    """Steps per env per rollout; a rollout is num_envs * num_steps transitions."""
-    learning_rate: float = 1e-3
-    """Adam's step size (at the start, see anneal_lr)."""
-    anneal_lr: bool = True
-    """Decay the learning rate linearly to zero over total_timesteps."""
-    gamma: float = 0.99
-    """Discount factor."""
-    gae_lambda: float = 0.95
-    """GAE's lambda."""
-    num_minibatches: int = 2
-    """Minibatches per rollout in each update epoch (128 frames each with 2 envs)."""
-    update_epochs: int = 4
-    """Passes over each rollout. With the env at 56x56 the update is most of a step's cost:
-    4 epochs of 2 minibatches cost about half of the first recipe's 8 of 4, and forward
-    learns as well (docs/TRAINING.md, "Speed")."""
-    clip_coef: float = 0.2
-    """PPO's ratio clip."""
-    ent_coef: float = 0.0
-    """Entropy bonus coefficient."""
-    vf_coef: float = 0.5
-    """Value loss coefficient."""
-    max_grad_norm: float = 0.5
-    """Gradient norm clip."""
-    reward_transform: str = "symlog"
-    """"symlog": learn from sign(r) * ln(1 + |r|) of the task reward (then shaping, scale
-    and clip); "none": the task reward as is. The forward reward spans -27 .. 1e4+;
-    compressed, a step closer is visible at any distance."""
-    shaping_coef: float = 1000.0
-    """Progress shaping ``c * (d - d')`` per step, d the robot-goal distance in m (it sums
-    to ``c * (d_start - d_end)`` over an episode, so it ranks whole episodes as the distance
-    they close does). Far from the block the seed reward is nearly flat (-27.0 at 0.9 m,
-    -24.7 at 0.6 m): without this, a random policy's wheel commands leave no trace in the
-    returns that the value function's error does not swamp. 0 turns it off."""
-    aim_coef: float = 300.0
-    """Aim shaping ``k * (e - e')`` per step, e the env's ``aim_error``: how far (m) the block
-    lies off the robot's line of travel. Progress alone barely rewards steering (heading
-    8 degrees off costs 1 % of the progress per step) and the payoff of aiming right -- the
-    huge reward at the block -- comes ~300 steps later, beyond gamma's horizon; this pays for
-    a correction the step it is made. Potential-based, it sums to ``k * (e_start - e_end)``
-    and cannot be farmed by wiggling. 0 turns it off."""
-    success_bonus: float = 0.0
-    """Added on the step that ends an episode with success (tasks with early_end)."""
-    fail_penalty: float = 0.0
-    """Subtracted on the step that ends an episode as failed (goal pushed away)."""
-    reward_clip: float = 10.0
-    """Clip of the scaled reward (reward / running std of the discounted return)."""
-    checkpoint_every: int = 5
-    """Save the checkpoint every this many updates (and always at the end)."""
-    torch_threads: int = 1
-    """Learner threads while collecting; the env workers need the other cores."""
-    update_threads: int = field(default_factory=lambda: usable_cores())
-    """Learner threads during the update, when the env workers are idle: the cores this
-    process may run on (its CPU affinity), not all the machine's; more threads than cores
-    made PPO 10x slower (2 cores of 16 under taskset: 43 env steps/s instead of ~450)."""
-    progress: bool = True
-    """Show a progress bar."""
-    model: ModelConfig = field(default_factory=ModelConfig)
-    """The network (``model.py``)."""
-
-    @property
-    def shaping(self) -> Shaping:
-        return Shaping(self.reward_transform, self.shaping_coef, self.aim_coef,
-                       self.success_bonus, self.fail_penalty)
-
-
-TASK_DEFAULTS: dict[str, dict[str, Any]] = {
-    # Why these numbers: docs/TRAINING.md ("Training seek").
-    "seek": {
-        "total_timesteps": 300_000, "out": "runs/seek", "reward_transform": "none",
-        "shaping_coef": 10.0, "aim_coef": 5.0, "success_bonus": 10.0, "fail_penalty": 5.0,
-        "learning_rate": 3e-4, "update_epochs": 8, "num_minibatches": 4,  # as measured
-        "model": {"init_mu": 0.3},
-    },
-}
-"""Per task, the PPOArgs values that differ from the dataclass defaults; the command line
-and a ``[train]`` table override them."""
-
-
-def ppo_args(task: str, overrides: dict[str, Any] | None = None) -> PPOArgs:
-    """``PPOArgs`` for ``task``: dataclass defaults, then ``TASK_DEFAULTS[task]``, then
-    ``overrides`` (a ``[train]`` table or command-line values; ``model`` a dict)."""
-    get_task(task)
-    values: dict[str, Any] = {**TASK_DEFAULTS.get(task, {})}
-    model = dict(values.pop("model", {}))
-    for key, value in (overrides or {}).items():
-        if key == "model":
-            model.update(value)
-        else:
-            values[key] = value
-    names = {f.name for f in fields(PPOArgs)} - {"task", "config", "model"}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise UsageError(f"unknown training option(s) {', '.join(unknown)} "
-                         f"(known: {', '.join(sorted(names))})")
-    model_names = {f.name for f in fields(ModelConfig)}
-    if set(model) - model_names:
-        raise UsageError(f"unknown model option(s) {', '.join(sorted(set(model) - model_names))}"
-                         f" (known: {', '.join(sorted(model_names))})")
-    if "channels" in model:
-        model["channels"] = tuple(model["channels"])
-    return replace(PPOArgs(), task=task, **values, model=replace(ModelConfig(), **model))
 
 
 def _write_metrics_row(path: Path, row: dict[str, Any],
@@ -557,4 +410,5 @@ def _save(path: Path, args: PPOArgs, model: ActorCritic, optimizer: torch.optim.
     })
 
 
-__all__ = ["TASK_DEFAULTS", "Interrupted", "PPOArgs", "plot_learning_curve", "ppo_args", "train"]
+__all__ = ["TASK_DEFAULTS", "Interrupted", "PPOArgs", "plot_learning_curve", "ppo_args", "train",
+           "usable_cores"]

@@ -1,0 +1,266 @@
+"""The trainers' arguments: ``PPOArgs`` (with ``TASK_DEFAULTS``), ``DAggerArgs`` and the
+network's ``ModelConfig``, torch-free.
+
+``jetbot-train``'s parser is built from these dataclasses (``options.py``), so ``--help``, a
+refused flag and ``eval`` of an ONNX policy never import torch. ``ppo.py``, ``dagger.py`` and
+``model.py`` re-export them where they were first defined.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any
+
+from jetbot_rt.config import Config
+from jetbot_rt.errors import UsageError
+from jetbot_rt.train.env import POLICY_IMAGE_SIZE, get_task
+from jetbot_rt.train.wrappers import Shaping
+
+LEGACY_IMAGE_SIZE, LEGACY_POOL = 224, 4
+"""What a model config without ``image_size`` (written before it existed) meant."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    image_size: int = POLICY_IMAGE_SIZE
+    """Side of the square input image (the env renders at this size, the ONNX input has it)."""
+    pool: int = 1
+    """Area-pooling factor applied to the input before the first convolution (divides
+    ``image_size``)."""
+    channels: tuple[int, int, int] = (16, 32, 32)
+    """Output channels of the three stride-2 convolutions."""
+    hidden: int = 128
+    """Width of the fully connected layer shared by the actor and critic heads."""
+    init_log_std: float = -1.0
+    """Initial log standard deviation of the action distribution (std 0.37: the task needs
+    small, smooth steering corrections, not wide exploration)."""
+    init_mu: float = 1.0
+    """Action prior: the initial ``mu`` of both wheels (the head's bias; its weights start
+    near zero). 1.0 drives straight ahead at full command from the first rollout, so early
+    episodes already reach the block and PPO only has to learn the steering."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ModelConfig:
+        if "image_size" not in data:
+            data = {**data, "image_size": LEGACY_IMAGE_SIZE, "pool": data.get("pool", LEGACY_POOL)}
+        return cls(**{**data, "channels": tuple(data["channels"])})
+
+    def __post_init__(self) -> None:
+        if self.image_size < 8 or self.pool < 1 or self.image_size % self.pool:
+            raise ValueError(f"image_size {self.image_size} must be >= 8 and a multiple of "
+                             f"pool {self.pool}")
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (``taskset``, cgroup cpusets), else the CPU count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+@dataclass
+class PPOArgs:
+    task: str = "forward"
+    """Task name (see ``jetbot_rt.sim.tasks.TASKS``)."""
+    total_timesteps: int = 40_000
+    """Environment steps to collect in total, over all envs."""
+    num_envs: int = field(default_factory=lambda: usable_cores())
+    """Envs stepped together, each with its own PyBullet client; one per core by default."""
+    workers: int | None = None
+    """Env worker processes: None (default) runs each env in a process of its own
+    (``AsyncVectorEnv``); 0 runs them all in the training process (``SyncVectorEnv``: no
+    process start or pickling, one core). With ``ray``: the Ray actors hosting the envs
+    (1 .. num_envs; default one per CPU of the cluster, at most num_envs)."""
+    ray: str | None = None
+    """Env workers as actors on a Ray cluster (``ray_workers.py``): "local" starts Ray on this
+    machine, "auto" joins the cluster this machine is part of, HOST:PORT or ray://HOST:PORT
+    another; None (default): no Ray, not even imported."""
+    ray_max_restarts: int = 3
+    """With ``ray``: how many times Ray restarts each env worker (its process or node lost)
+    before the run gives up (checkpoint kept, exit 75). Raise it on preemptible nodes."""
+    device: str = "auto"
+    """Where the learner (network, rollout buffers, optimizer, the rollout's forward pass)
+    runs: "auto" (CUDA when torch sees a GPU, else the CPU), "cpu", "cuda" or "cuda:N". Env
+    workers and Ray actors never see it: actions go to them as CPU numpy."""
+    out: str = "runs/forward"
+    """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
+    config: Config = field(default_factory=Config)
+    """Runtime config: sim physics, actions (max_speed, trim, sign), loop rate."""
+    seed: int = 1
+    """Seeds torch, the env start noise (env i gets seed + i) and minibatch shuffling."""
+    resume: bool = False
+    """Continue from ``out/checkpoint.pt`` (model, optimizer, step count, reward scale)."""
+    init: str | None = None
+    """Start from this checkpoint's network (any task: e.g. forward -> seek); a fresh
+    optimizer, step count and reward scale."""
+    num_steps: int = 128
+    """Steps per env per rollout; a rollout is num_envs * num_steps transitions."""
+    learning_rate: float = 1e-3
+    """Adam's step size (at the start, see anneal_lr)."""
+    anneal_lr: bool = True
+    """Decay the learning rate linearly to zero over total_timesteps."""
+    gamma: float = 0.99
+    """Discount factor."""
+    gae_lambda: float = 0.95
+    """GAE's lambda."""
+    num_minibatches: int = 2
+    """Minibatches per rollout in each update epoch (128 frames each with 2 envs)."""
+    update_epochs: int = 4
+    """Passes over each rollout. With the env at 56x56 the update is most of a step's cost:
+    4 epochs of 2 minibatches cost about half of the first recipe's 8 of 4, and forward
+    learns as well (docs/TRAINING.md, "Speed")."""
+    clip_coef: float = 0.2
+    """PPO's ratio clip."""
+    ent_coef: float = 0.0
+    """Entropy bonus coefficient."""
+    vf_coef: float = 0.5
+    """Value loss coefficient."""
+    max_grad_norm: float = 0.5
+    """Gradient norm clip."""
+    reward_transform: str = "symlog"
+    """"symlog": learn from sign(r) * ln(1 + |r|) of the task reward (then shaping, scale
+    and clip); "none": the task reward as is. The forward reward spans -27 .. 1e4+;
+    compressed, a step closer is visible at any distance."""
+    shaping_coef: float = 1000.0
+    """Progress shaping ``c * (d - d')`` per step, d the robot-goal distance in m (it sums
+    to ``c * (d_start - d_end)`` over an episode, so it ranks whole episodes as the distance
+    they close does). Far from the block the seed reward is nearly flat (-27.0 at 0.9 m,
+    -24.7 at 0.6 m): without this, a random policy's wheel commands leave no trace in the
+    returns that the value function's error does not swamp. 0 turns it off."""
+    aim_coef: float = 300.0
+    """Aim shaping ``k * (e - e')`` per step, e the env's ``aim_error``: how far (m) the block
+    lies off the robot's line of travel. Progress alone barely rewards steering (heading
+    8 degrees off costs 1 % of the progress per step) and the payoff of aiming right -- the
+    huge reward at the block -- comes ~300 steps later, beyond gamma's horizon; this pays for
+    a correction the step it is made. Potential-based, it sums to ``k * (e_start - e_end)``
+    and cannot be farmed by wiggling. 0 turns it off."""
+    success_bonus: float = 0.0
+    """Added on the step that ends an episode with success (tasks with early_end)."""
+    fail_penalty: float = 0.0
+    """Subtracted on the step that ends an episode as failed (goal pushed away)."""
+    reward_clip: float = 10.0
+    """Clip of the scaled reward (reward / running std of the discounted return)."""
+    checkpoint_every: int = 5
+    """Save the checkpoint every this many updates (and always at the end)."""
+    torch_threads: int = 1
+    """Learner threads while collecting; the env workers need the other cores."""
+    update_threads: int = field(default_factory=lambda: usable_cores())
+    """Learner threads during the update, when the env workers are idle: the cores this
+    process may run on (its CPU affinity), not all the machine's; more threads than cores
+    made PPO 10x slower (2 cores of 16 under taskset: 43 env steps/s instead of ~450)."""
+    progress: bool = True
+    """Show a progress bar."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """The network (``model.py``)."""
+
+    @property
+    def shaping(self) -> Shaping:
+        return Shaping(self.reward_transform, self.shaping_coef, self.aim_coef,
+                       self.success_bonus, self.fail_penalty)
+
+
+TASK_DEFAULTS: dict[str, dict[str, Any]] = {
+    # Why these numbers: docs/TRAINING.md ("Training seek").
+    "seek": {
+        "total_timesteps": 300_000, "out": "runs/seek", "reward_transform": "none",
+        "shaping_coef": 10.0, "aim_coef": 5.0, "success_bonus": 10.0, "fail_penalty": 5.0,
+        "learning_rate": 3e-4, "update_epochs": 8, "num_minibatches": 4,  # as measured
+        "model": {"init_mu": 0.3},
+    },
+}
+"""Per task, the PPOArgs values that differ from the dataclass defaults; the command line
+and a ``[train]`` table override them."""
+
+
+def ppo_args(task: str, overrides: dict[str, Any] | None = None) -> PPOArgs:
+    """``PPOArgs`` for ``task``: dataclass defaults, then ``TASK_DEFAULTS[task]``, then
+    ``overrides`` (a ``[train]`` table or command-line values; ``model`` a dict)."""
+    get_task(task)
+    values: dict[str, Any] = {**TASK_DEFAULTS.get(task, {})}
+    model = dict(values.pop("model", {}))
+    for key, value in (overrides or {}).items():
+        if key == "model":
+            model.update(value)
+        else:
+            values[key] = value
+    names = {f.name for f in fields(PPOArgs)} - {"task", "config", "model"}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise UsageError(f"unknown training option(s) {', '.join(unknown)} "
+                         f"(known: {', '.join(sorted(names))})")
+    model_names = {f.name for f in fields(ModelConfig)}
+    if set(model) - model_names:
+        raise UsageError(f"unknown model option(s) {', '.join(sorted(set(model) - model_names))}"
+                         f" (known: {', '.join(sorted(model_names))})")
+    if "channels" in model:
+        model["channels"] = tuple(model["channels"])
+    return replace(PPOArgs(), task=task, **values, model=replace(ModelConfig(), **model))
+
+
+@dataclass
+class DAggerArgs:
+    task: str = "seek"
+    """Task name; it needs an expert (seek)."""
+    out: str = "runs/seek"
+    """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
+    config: Config = field(default_factory=Config)
+    """Runtime config: sim physics, actions (max_speed, trim, sign), loop rate."""
+    seed: int = 1
+    """Seeds torch, the episodes' scenes (iteration i, env j: seed * 100000 + i * 1000 + j)
+    and minibatch shuffling."""
+    resume: bool = False
+    """Continue from ``out/checkpoint.pt`` (network, optimizer, iteration); the aggregated
+    frames are not kept, so the dataset starts again from the student's rollouts."""
+    init: str | None = None
+    """Start from this checkpoint's network (any task)."""
+    num_envs: int = field(default_factory=lambda: usable_cores())
+    """Envs stepped together, each in a worker process of its own; one per core by default."""
+    workers: int | None = None
+    """0: all envs in the training process (SyncVectorEnv); None: one process per env."""
+    iterations: int = 12
+    """DAgger iterations (iteration 0: the expert drives)."""
+    steps_per_iteration: int = 3000
+    """Env steps collected per iteration, over all envs (finished episodes only count)."""
+    expert_noise: float = 0.3
+    """Std of the Gaussian noise on the expert's action while it drives (iteration 0 and the
+    beta share): states off the expert's path, with their corrections."""
+    beta: float = 0.5
+    """Share of episodes the expert drives in iteration 1; halves every iteration."""
+    train_samples: int = 16_000
+    """Frames regressed on after each iteration, in shuffled passes over the aggregate (a
+    fixed cost: epochs over a growing aggregate would make each iteration slower than the
+    last)."""
+    batch_size: int = 128
+    """Frames per Adam step."""
+    learning_rate: float = 1e-3
+    """Adam's step size."""
+    stop_weight: float = 4.0
+    """Loss weight of frames the expert labels stop ([0, 0]): few, and the ones that decide
+    whether the block is pushed."""
+    torch_threads: int = field(default_factory=lambda: usable_cores())
+    """Learner threads during the regression (the env workers are idle then)."""
+    progress: bool = True
+    """Show a progress bar."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """The network (``model.py``)."""
+
+
+def dagger_args(task: str, overrides: dict[str, Any] | None = None) -> DAggerArgs:
+    """``DAggerArgs`` for ``task`` with ``overrides`` (a ``[train]`` table, then flags)."""
+    get_task(task)
+    values = {k: v for k, v in (overrides or {}).items() if k != "model"}
+    names = {f.name for f in fields(DAggerArgs)} - {"task", "config", "model"}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise UsageError(f"unknown DAgger option(s) {', '.join(unknown)} "
+                         f"(known: {', '.join(sorted(names))})")
+    model = dict((overrides or {}).get("model", {}))
+    if "channels" in model:
+        model["channels"] = tuple(model["channels"])
+    return replace(DAggerArgs(), task=task, **{"out": f"runs/{task}", **values},
+                   model=replace(ModelConfig(), **model))
