@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE
-from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.model import ActorCritic, ModelConfig, normal_log_prob
 
 S = POLICY_IMAGE_SIZE
 
@@ -52,6 +52,32 @@ def test_a_config_saved_before_image_size_existed_is_the_224_pooled_network():
     assert (config.image_size, config.pool) == (224, 4)
     with pytest.raises(ValueError, match="multiple of pool"):
         ModelConfig(image_size=64, pool=3)
+
+
+def test_the_first_layer_is_configurable_and_old_configs_keep_the_5x5_stride_2_one():
+    from jetbot_rt.train.ppo import ppo_args
+
+    forward = ActorCritic(ppo_args("forward").model)
+    conv = forward.encoder[0]
+    assert (conv.kernel_size, conv.stride, conv.padding) == ((6, 6), (4, 4), (1, 1))
+    assert forward.encoder[:-3](torch.zeros(1, 3, S, S)).shape == (1, 32, 4, 4)
+    with torch.no_grad():
+        assert forward(torch.zeros(3, S, S, 3))[0].shape == (3, 2)
+    saved = {k: v for k, v in ModelConfig().to_dict().items()
+             if k not in ("first_kernel", "first_stride")}
+    old = ActorCritic(ModelConfig.from_dict(saved)).encoder[0]
+    assert (old.kernel_size, old.stride, old.padding) == ((5, 5), (2, 2), (2, 2))
+    assert ppo_args("seek").model.first_stride == 2  # seek keeps the network it was tuned with
+    with pytest.raises(ValueError, match="first_stride"):
+        ModelConfig(first_kernel=3, first_stride=4)
+
+
+def test_the_rollout_log_density_is_torchs_bit_for_bit():
+    torch.manual_seed(0)
+    mu, std = torch.randn(5, 2), torch.rand(5, 2) + 0.1
+    x = torch.normal(mu, std)
+    normal = torch.distributions.Normal(mu, std, validate_args=False)
+    assert torch.equal(normal_log_prob(x, mu, std), normal.log_prob(x))
 
 
 @pytest.mark.parametrize("preset", [None, "ACTIVE"])

@@ -9,7 +9,7 @@ import pytest
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.model import ModelConfig
 from jetbot_rt.train.ppo import TASK_DEFAULTS, PPOArgs, ppo_args
-from jetbot_rt.train.wrappers import Shaping, make_train_env, symlog
+from jetbot_rt.train.wrappers import KeepInfo, Shaping, make_train_env, symlog
 
 pytest.importorskip("pybullet")
 
@@ -46,6 +46,21 @@ def test_outcome_bonus_and_episode_statistics_carry_the_true_return():
         assert info["episode"]["r"] == pytest.approx(1.0)  # the task's reward, unshaped
     finally:
         env.close()
+
+
+def test_keep_info_passes_on_only_the_keys_asked_for_and_the_rest_unchanged():
+    env = KeepInfo(make_train_env("forward", None, Shaping("none")), ("distance", "episode"))
+    full = make_train_env("forward", None, Shaping("none"))
+    try:
+        assert env.reset(seed=2)[1].keys() == {"distance"}
+        full.reset(seed=2)
+        obs, reward, terminated, truncated, info = env.step(np.array([0.5, 0.4]))
+        want = full.step(np.array([0.5, 0.4]))
+        assert info == {"distance": want[4]["distance"]} and "pose" in want[4]
+        assert np.array_equal(obs, want[0]) and (reward, terminated, truncated) == want[1:4]
+    finally:
+        env.close()
+        full.close()
 
 
 def test_symlog_and_bad_transform():

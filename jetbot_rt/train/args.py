@@ -29,7 +29,14 @@ class ModelConfig:
     """Area-pooling factor applied to the input before the first convolution (divides
     ``image_size``)."""
     channels: tuple[int, int, int] = (16, 32, 32)
-    """Output channels of the three stride-2 convolutions."""
+    """Output channels of the three convolutions."""
+    first_kernel: int = 5
+    """Kernel side of the first convolution (padded by ``(first_kernel - first_stride + 1)
+    // 2``; the other two are 3x3, stride 2, padded by 1)."""
+    first_stride: int = 2
+    """Stride of the first convolution. 2 (the first networks): 28x28 features from a 56x56
+    image; 4 (with a 6x6 kernel, forward's PPO default): 14x14, and the whole network costs
+    about a quarter of the CPU per frame to train (docs/TRAINING.md, "Speed")."""
     hidden: int = 128
     """Width of the fully connected layer shared by the actor and critic heads."""
     init_log_std: float = -1.0
@@ -53,6 +60,9 @@ class ModelConfig:
         if self.image_size < 8 or self.pool < 1 or self.image_size % self.pool:
             raise ValueError(f"image_size {self.image_size} must be >= 8 and a multiple of "
                              f"pool {self.pool}")
+        if not 1 <= self.first_stride <= self.first_kernel:
+            raise ValueError(f"first_stride {self.first_stride} must be 1 .. first_kernel "
+                             f"{self.first_kernel}")
 
 
 def usable_cores() -> int:
@@ -165,6 +175,8 @@ class PPOArgs:
 
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {
+    # A 6x6 stride-4 first layer: a quarter of the network's CPU (docs/TRAINING.md, "Speed").
+    "forward": {"model": {"first_kernel": 6, "first_stride": 4}},
     # Why these numbers: docs/TRAINING.md ("Training seek").
     "seek": {
         "total_timesteps": 300_000, "out": "runs/seek", "reward_transform": "none",

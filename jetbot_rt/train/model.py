@@ -6,17 +6,28 @@ scaling (and, with ``pool`` > 1, area downsampling), so the exported graph needs
 preprocessing outside it. The env renders at S (56 by default, ``POLICY_IMAGE_SIZE``): the
 first bundled policy took 224x224 and area-pooled it by 4 to 56x56 before this same network,
 so the network is unchanged; rendering at 56 skips drawing the 16 pixels of which it kept one.
-About 0.2 M parameters (the seed's rl_games network had ~19 M).
+About 0.2 M parameters (the seed's rl_games network had ~19 M); 82 k with the 6x6 stride-4
+first layer that forward's PPO default uses (``first_kernel``, ``first_stride``).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
 
 from jetbot_rt.train.args import LEGACY_IMAGE_SIZE, LEGACY_POOL, ModelConfig
 
-__all__ = ["LEGACY_IMAGE_SIZE", "LEGACY_POOL", "ActorCritic", "ModelConfig"]
+__all__ = ["LEGACY_IMAGE_SIZE", "LEGACY_POOL", "ActorCritic", "ModelConfig", "normal_log_prob"]
+
+LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def normal_log_prob(x: torch.Tensor, mu: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """Per-dimension log density of ``Normal(mu, std)`` at ``x``, as torch's ``log_prob``
+    computes it, without building a distribution object (PPO's rollout: 2 frames a step)."""
+    return -((x - mu) ** 2) / (2 * std**2) - std.log() - LOG_SQRT_2PI
 
 
 def _layer_init(layer: nn.Module, gain: float) -> nn.Module:
@@ -35,12 +46,14 @@ class ActorCritic(nn.Module):
         super().__init__()
         self.config = config
         c1, c2, c3 = config.channels
-        side = config.image_size // config.pool
-        for _ in range(3):
+        kernel, stride = config.first_kernel, config.first_stride
+        pad = (kernel - stride + 1) // 2
+        side = (config.image_size // config.pool + 2 * pad - kernel) // stride + 1
+        for _ in range(2):
             side = (side + 1) // 2  # stride 2 with "same" padding
         relu_gain = nn.init.calculate_gain("relu")
         self.encoder = nn.Sequential(
-            _layer_init(nn.Conv2d(3, c1, 5, stride=2, padding=2), relu_gain),
+            _layer_init(nn.Conv2d(3, c1, kernel, stride=stride, padding=pad), relu_gain),
             nn.ReLU(),
             _layer_init(nn.Conv2d(c1, c2, 3, stride=2, padding=1), relu_gain),
             nn.ReLU(),

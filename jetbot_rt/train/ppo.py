@@ -40,9 +40,9 @@ from jetbot_rt.train.checkpoint import (
 from jetbot_rt.train.device import resolve_device, to_cpu
 from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.export import export_model
-from jetbot_rt.train.model import ActorCritic
+from jetbot_rt.train.model import ActorCritic, normal_log_prob
 from jetbot_rt.train.ray_workers import WorkersLost
-from jetbot_rt.train.wrappers import Shaping, make_train_env, normalize_rewards
+from jetbot_rt.train.wrappers import KeepInfo, Shaping, make_train_env, normalize_rewards
 
 METRICS_NAME = "metrics.csv"
 CURVE_NAME = "learning_curve.png"
@@ -52,6 +52,10 @@ METRIC_FIELDS = (
     "mean_final_distance", "success_rate", "policy_loss", "value_loss", "entropy",
     "approx_kl", "clipfrac", "learning_rate", "reward_scale", "worker_restarts",
 )
+
+
+EPISODE_INFO = ("episode", "distance", "is_success")
+"""The only ``info`` keys the learner reads (at an episode's end); the workers drop the rest."""
 
 
 class Interrupted(Exception):
@@ -113,7 +117,8 @@ def _worker_env(task: str, config: Config, shaping: Shaping, image_size: int) ->
     and then closes the workers), not a traceback from every worker."""
     if multiprocessing.parent_process() is not None:  # AsyncVectorEnv also calls it here
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-    return make_train_env(task, config, shaping, image_size=(image_size, image_size))
+    env = make_train_env(task, config, shaping, image_size=(image_size, image_size))
+    return KeepInfo(env, EPISODE_INFO)
 
 
 def make_vector_env(args: PPOArgs, image_size: int) -> tuple[VectorEnv, Any]:
@@ -252,10 +257,11 @@ def train(args: PPOArgs) -> dict[str, Any]:
                 obs_buf[step] = next_obs
                 dones_buf[step] = next_done
                 with torch.no_grad():
-                    dist, value = model.distribution(next_obs)
-                    action = dist.sample()
-                    logprobs_buf[step] = dist.log_prob(action).sum(-1)
-                values_buf[step] = value
+                    mu, log_std, value = model.heads(next_obs)
+                    std = log_std.exp()
+                    action = torch.normal(mu, std)  # what Normal(mu, std).sample() does
+                    logprobs_buf[step] = normal_log_prob(action, mu, std).sum(-1)
+                values_buf[step] = value.squeeze(-1)
                 actions_buf[step] = action
                 next_obs_np, reward, terminated, truncated, infos = envs.step(action.cpu().numpy())
                 done = np.logical_or(terminated, truncated)

@@ -77,6 +77,28 @@ class OutcomeBonus(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
+class KeepInfo(gym.Wrapper):
+    """Passes on only the ``info`` keys a trainer reads. A vector env pickles each env's info
+    through a pipe and merges it key by key into arrays every step; PPO reads three keys at
+    the end of an episode, and the env's full info (pose, duty, goal, ...) cost the learner
+    about a third of its share of a vector step (docs/TRAINING.md, "Speed")."""
+
+    def __init__(self, env: gym.Env, keys: tuple[str, ...]) -> None:
+        super().__init__(env)
+        self.keys = keys
+
+    def _kept(self, info: dict[str, Any]) -> dict[str, Any]:
+        return {k: info[k] for k in self.keys if k in info}
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        return obs, self._kept(info)
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated, truncated, self._kept(info)
+
+
 @dataclass(frozen=True)
 class Shaping:
     """What ``make_train_env`` adds to the task's reward (``PPOArgs`` holds the same fields)."""
