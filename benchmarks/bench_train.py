@@ -10,8 +10,10 @@ evaluation. Writes benchmarks/results/train[-TAG].json and .md.
 
 Throughput is PPO end to end, in the same run, with three settings per number of env worker
 processes: the 224x224 path (the first bundled network, pool 4, physics at 240 Hz, the old
-update recipe), the training size with that old recipe (8 epochs x 4 minibatches, the action
-distribution checking its arguments), and the training size with today's ``PPOArgs``.
+update recipe), the training size with the first network and that old recipe (8 epochs x 4
+minibatches, the action distribution checking its arguments, the learner computing every
+step's actions), and the training size with today's defaults for forward (``ppo_args``: the
+6x6 stride-4 first layer, 4 epochs x 2 minibatches, the policy run in the env workers).
 
 Timings depend on what else the machine runs; the recorded ones say what the CPU was shared with.
 """
@@ -33,13 +35,14 @@ RESULTS = Path(__file__).resolve().parent / "results"
 SETTINGS = ("224", "56-old", "train")
 """The throughput runs of each process count, baselines first."""
 OLD_RECIPE = {"update_epochs": 8, "num_minibatches": 4}
-"""PPOArgs before the update was made cheaper (issue 10)."""
+"""PPOArgs before the update was made cheaper (issue 10); the old settings also have the
+first network (5x5 stride-2 first layer) and the learner computing every step's actions."""
 
 
 def measure_throughput(steps: int, num_envs: int, setting: str) -> dict:
     from jetbot_rt.config import Config
     from jetbot_rt.train.model import LEGACY_IMAGE_SIZE, LEGACY_POOL, ActorCritic, ModelConfig
-    from jetbot_rt.train.ppo import PPOArgs, train
+    from jetbot_rt.train.ppo import ppo_args, train
 
     config, model, recipe = Config(), ModelConfig(), {}
     if setting == "224":
@@ -50,8 +53,11 @@ def measure_throughput(steps: int, num_envs: int, setting: str) -> dict:
     ActorCritic.validate_args = setting != "train"
     try:
         with tempfile.TemporaryDirectory() as out:
-            args = PPOArgs(total_timesteps=steps, num_envs=num_envs, out=out, config=config,
-                           model=model, progress=False, **recipe)
+            args = ppo_args("forward", {"total_timesteps": steps, "num_envs": num_envs,
+                                        "out": out, "progress": False, **recipe})
+            args.config = config
+            if setting != "train":  # the first network, per step through the learner
+                args.model, args.sample_in_workers = model, False
             start = time.perf_counter()
             summary = train(args)
             total = time.perf_counter() - start
@@ -59,7 +65,10 @@ def measure_throughput(steps: int, num_envs: int, setting: str) -> dict:
         ActorCritic.validate_args = False
     return {
         "path": setting,
-        "image_size": model.image_size,
+        "image_size": args.model.image_size,
+        "first_layer": f"{args.model.first_kernel}x{args.model.first_kernel} stride "
+                       f"{args.model.first_stride}",
+        "sample_in_workers": args.sample_in_workers,
         "physics_hz": config.sim.physics_hz,
         "update_epochs": args.update_epochs,
         "num_minibatches": args.num_minibatches,
@@ -102,9 +111,12 @@ def write_markdown(result: dict, path: Path) -> None:
             f"average {result.get('loadavg_1min_at_start')} at start, "
             f"{result.get('loadavg_1min_at_end')} at the end.", "",
             "| worker processes | 224x224 path (pool 4, 240 Hz, old recipe) | "
-            f"{new['image_size']}x{new['image_size']}, old recipe (8 epochs x 4 minibatches) "
+            f"{new['image_size']}x{new['image_size']}, old recipe (8 epochs x 4 minibatches, "
+            "first network, actions from the learner each step) "
             f"| {new['image_size']}x{new['image_size']}, {new['physics_hz']:g} Hz, now "
-            f"({new['update_epochs']} epochs x {new['num_minibatches']} minibatches) "
+            f"({new['update_epochs']} epochs x {new['num_minibatches']} minibatches, first "
+            f"layer {new.get('first_layer', '5x5 stride 2')}, "
+            f"{'policy in the workers' if new.get('sample_in_workers') else 'learner'}) "
             "| now / 224 | now / old recipe |",
             "| --- | --- | --- | --- | --- | --- |",
         ]

@@ -6,7 +6,9 @@ against the old one (8 x 4), both at 56x56, and the bundled policy's run (8 x 4 
 The two 56x56 runs: ``jetbot-train train --task forward --timesteps 40000 --num-envs 2
 --seed 1`` with and without ``--update-epochs 8 --num-minibatches 4``; their metrics.csv
 copied to recipe-now.csv and recipe-old.csv; recipe-stem4.csv is the same command with
-forward's default network since then (first layer 6x6, stride 4).
+forward's network since then (first layer 6x6, stride 4) and the learner computing every
+step's actions (``--sample-in-workers false``), recipe-sampler.csv the command as it is now
+(the policy run in the env workers).
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 RESULTS = Path(__file__).resolve().parent / "results"
-RUNS = (("recipe-stem4.csv", "56x56, 4 x 2, first layer 6x6 stride 4 (forward's default now)"),
+RUNS = (("recipe-sampler.csv", "56x56, 4 x 2, 6x6 stride 4, policy in the workers (default now)"),
+        ("recipe-stem4.csv", "56x56, 4 x 2, first layer 6x6 stride 4, learner per step"),
         ("recipe-now.csv", "56x56, 4 epochs x 2 minibatches, first layer 5x5 stride 2"),
         ("recipe-old.csv", "56x56, 8 epochs x 4 minibatches (old)"),
         ("train.csv", "224x224, 8 x 4: the bundled policy's run"))

@@ -3,9 +3,10 @@
     python benchmarks/profile_ppo.py [--steps 4096] [--num-envs 2] [--tag NAME] [--set KEY=VALUE]
 
 The learner's process CPU time (all its threads) is split into rollout inference (the
-network's forward pass without gradients), the vector env's ``step`` as the learner sees it
-(sending actions, receiving results, merging infos, the reward normaliser: CPU only, waiting
-for the workers is not CPU), the update (between ``train()``'s two ``torch.set_num_threads``
+network's forward pass without gradients), the vector env's ``step`` -- or, when the workers
+sample (``sample_in_workers``), its ``call("collect")`` -- as the learner sees it (sending
+actions or weights, receiving results, merging infos, the reward normaliser: CPU only,
+waiting for the workers is not CPU), the update (between ``train()``'s two ``torch.set_num_threads``
 calls: GAE, the epochs, the optimizer) and the rest of the loop (buffers, bookkeeping). The
 env workers' CPU comes from /proc. Every figure is for the timed loop (from the first env
 step to the last update), scaled to ``--steps``; wall time besides. On a shared machine the
@@ -56,12 +57,19 @@ class Meter:
 
     def install(self, update_threads: int) -> None:
         import torch
+        from gymnasium.vector import AsyncVectorEnv
         from gymnasium.wrappers.vector import ClipReward
 
         from jetbot_rt.train.model import ActorCritic
 
-        meter, heads, step, set_threads = self, ActorCritic.heads, ClipReward.step, None
+        meter, heads, step, call = self, ActorCritic.heads, ClipReward.step, AsyncVectorEnv.call
         set_threads = torch.set_num_threads
+
+        def begin(env: object) -> None:
+            if meter.start is None:
+                meter.start = meter.now()
+                meter.workers = [p.pid for p in getattr(env, "processes", [])]
+                meter.workers_start = sum(map(_proc_cpu, meter.workers))
 
         def timed_heads(model, x):  # type: ignore[no-untyped-def]
             if torch.is_grad_enabled():
@@ -72,12 +80,18 @@ class Meter:
             return out
 
         def timed_step(env, actions):  # type: ignore[no-untyped-def]
-            if meter.start is None:
-                meter.start = meter.now()
-                meter.workers = [p.pid for p in getattr(env.unwrapped, "processes", [])]
-                meter.workers_start = sum(map(_proc_cpu, meter.workers))
+            begin(env.unwrapped)
             c = time.process_time()
             out = step(env, actions)
+            meter.cpu["env_step"] += time.process_time() - c
+            return out
+
+        def timed_call(env, name, *args, **kwargs):  # type: ignore[no-untyped-def]
+            if name != "collect":
+                return call(env, name, *args, **kwargs)
+            begin(env)
+            c = time.process_time()
+            out = call(env, name, *args, **kwargs)
             meter.cpu["env_step"] += time.process_time() - c
             return out
 
@@ -95,6 +109,7 @@ class Meter:
 
         ActorCritic.heads = timed_heads  # type: ignore[method-assign]
         ClipReward.step = timed_step  # type: ignore[method-assign]
+        AsyncVectorEnv.call = timed_call  # type: ignore[method-assign]
         torch.set_num_threads = timed_threads
 
     def report(self, steps_done: int, steps: int) -> dict:

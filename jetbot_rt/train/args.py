@@ -93,6 +93,13 @@ class PPOArgs:
     ray_max_restarts: int = 3
     """With ``ray``: how many times Ray restarts each env worker (its process or node lost)
     before the run gives up (checkpoint kept, exit 75). Raise it on preemptible nodes."""
+    sample_in_workers: bool = True
+    """With env worker processes (``workers`` None): each worker runs a copy of the policy
+    (CPU, one thread) through the whole rollout and sends it back at once (``sampler.py``),
+    instead of a round trip to the learner every step; 2x the env steps/s on 2 cores
+    (docs/TRAINING.md, "Speed"). Same PPO: the rollout's weights, SAME_STEP resets, reward
+    normalisation in step order. False, ``workers`` 0 and ``ray``: the learner computes each
+    step's actions, batched over the envs (on its device)."""
     device: str = "auto"
     """Where the learner (network, rollout buffers, optimizer, the rollout's forward pass)
     runs: "auto" (CUDA when torch sees a GPU, else the CPU), "cpu", "cuda" or "cuda:N". Env

@@ -93,6 +93,26 @@ def export_model(
     return error
 
 
+def weights_as_inputs(model: ActorCritic, opset: int = DEFAULT_OPSET) -> bytes:
+    """The network as ONNX whose weights are inputs with defaults (onnxruntime's overridable
+    initializers, named as in ``model.state_dict()``): one graph, fed new weights per call.
+    Outputs ``mu_``, ``log_std_``, ``value_`` (an output may not share a weight's name)."""
+    size = model.config.image_size
+    buffer = io.BytesIO()
+    torch.onnx.export(
+        model.eval(),
+        (torch.zeros(1, size, size, 3),),
+        buffer,
+        dynamo=False,
+        input_names=["obs"],
+        output_names=["mu_", "log_std_", "value_"],
+        keep_initializers_as_inputs=True,
+        do_constant_folding=False,  # folding would bake log_std.exp() and drop the weight
+        opset_version=opset,
+    )
+    return buffer.getvalue()
+
+
 def parity_error(model: ActorCritic, onnx_bytes: bytes, batch: int = 3, seed: int = 0) -> float:
     """Max abs difference over all outputs for random images, including the extremes 0/255."""
     rng = np.random.default_rng(seed)

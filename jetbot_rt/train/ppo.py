@@ -40,8 +40,9 @@ from jetbot_rt.train.checkpoint import (
 from jetbot_rt.train.device import resolve_device, to_cpu
 from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.export import export_model
-from jetbot_rt.train.model import ActorCritic, normal_log_prob
+from jetbot_rt.train.model import ActorCritic, ModelConfig, normal_log_prob
 from jetbot_rt.train.ray_workers import WorkersLost
+from jetbot_rt.train.sampler import PolicySampler, normalize_segment, stack_segments
 from jetbot_rt.train.wrappers import KeepInfo, Shaping, make_train_env, normalize_rewards
 
 METRICS_NAME = "metrics.csv"
@@ -112,19 +113,28 @@ def _prepare_out(out: Path) -> None:
         raise UsageError(f"cannot write to output directory {out}: {exc.strerror or exc}") from None
 
 
-def _worker_env(task: str, config: Config, shaping: Shaping, image_size: int) -> Any:
+def _worker_env(task: str, config: Config, shaping: Shaping, image_size: int,
+                sampler: ModelConfig | None = None, index: int = 0) -> Any:
     """Built inside each worker: Ctrl-C is the learner's to handle (it saves a checkpoint
-    and then closes the workers), not a traceback from every worker."""
+    and then closes the workers), not a traceback from every worker. ``sampler``: the
+    network of a ``PolicySampler`` around the env (env ``index``)."""
     if multiprocessing.parent_process() is not None:  # AsyncVectorEnv also calls it here
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-    env = make_train_env(task, config, shaping, image_size=(image_size, image_size))
-    return KeepInfo(env, EPISODE_INFO)
+    env = KeepInfo(make_train_env(task, config, shaping, image_size=(image_size, image_size)),
+                   EPISODE_INFO)
+    return env if sampler is None else PolicySampler(env, sampler, index)
 
 
-def make_vector_env(args: PPOArgs, image_size: int) -> tuple[VectorEnv, Any]:
+def samples_in_workers(args: PPOArgs) -> bool:
+    """Whether the env workers run the policy through whole rollouts (``sampler.py``)."""
+    return args.sample_in_workers and args.ray is None and args.workers != 0
+
+
+def make_vector_env(args: PPOArgs, model: ModelConfig) -> tuple[VectorEnv, Any]:
     """SAME_STEP autoreset either way (module docstring); the reward normaliser with it."""
-    factories = [partial(_worker_env, args.task, args.config, args.shaping, image_size)
-                 for _ in range(args.num_envs)]
+    sampler = model if samples_in_workers(args) else None
+    factories = [partial(_worker_env, args.task, args.config, args.shaping, model.image_size,
+                         sampler, i) for i in range(args.num_envs)]
     envs: VectorEnv
     if args.ray is not None:
         from jetbot_rt.train.ray_workers import RayVectorEnv
@@ -210,7 +220,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
     num_updates = math.ceil(args.total_timesteps / batch_size)
     max_speed = max_speed_of(args.config, get_task(args.task))
 
-    envs, normalizer = make_vector_env(args, model.config.image_size)
+    envs, normalizer = make_vector_env(args, model.config)
     if resume_state is not None and "reward_rms" in resume_state:
         _load_rms(normalizer.return_rms, resume_state["reward_rms"])
     writer = _tensorboard(out)
@@ -229,6 +239,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
     recent_success: deque[float] = deque(maxlen=20)
     episodes = 0
 
+    sampling = samples_in_workers(args)
     seeds = [args.seed + update * 1000 + i for i in range(args.num_envs)]
     next_obs_np, _ = envs.reset(seed=seeds)
     next_obs = model.preprocess(torch.from_numpy(next_obs_np).to(device))
@@ -252,7 +263,33 @@ def train(args: PPOArgs) -> dict[str, Any]:
                 frac = max(0.0, 1.0 - global_step / args.total_timesteps)
                 optimizer.param_groups[0]["lr"] = frac * args.learning_rate
 
-            for step in range(args.num_steps):
+            if sampling:  # the workers run the policy through the whole rollout
+                weights = to_cpu(model.state_dict())
+                segment = stack_segments(envs.unwrapped.call(
+                    "collect", weights, args.num_steps, (args.seed, update)))
+                global_step += args.num_steps * args.num_envs
+                frames = torch.from_numpy(segment["obs"]).to(device)
+                obs_buf[:] = model.preprocess(frames.flatten(0, 1)).reshape(obs_buf.shape)
+                for buf, key in ((actions_buf, "actions"), (logprobs_buf, "logprobs"),
+                                 (values_buf, "values")):
+                    buf[:] = torch.from_numpy(segment[key]).to(device)
+                done = segment["terminated"] | segment["truncated"]
+                dones_buf[0] = next_done
+                dones_buf[1:] = torch.from_numpy(done[:-1]).to(device)
+                reward = normalize_segment(normalizer, args.reward_clip, segment["rewards"],
+                                           segment["terminated"], segment["truncated"])
+                # final_values: the truncated steps' (see below), 0 elsewhere.
+                reward += args.gamma * segment["final_values"]
+                rewards_buf[:] = torch.as_tensor(reward, dtype=torch.float32, device=device)
+                for _, _, episode_return, distance, success in segment["episodes"]:
+                    recent_returns.append(episode_return)
+                    recent_distances.append(distance)
+                    recent_success.append(success)
+                    episodes += 1
+                next_obs = model.preprocess(torch.from_numpy(segment["next_obs"]).to(device))
+                next_done = torch.as_tensor(done[-1], dtype=torch.float32, device=device)
+
+            for step in range(0 if sampling else args.num_steps):
                 global_step += args.num_envs
                 obs_buf[step] = next_obs
                 dones_buf[step] = next_done
