@@ -39,11 +39,23 @@ class PolicySampler(gym.Wrapper):
     its outputs match torch's to ~1e-6."""
 
     def __init__(self, env: gym.Env, model: ModelConfig, index: int) -> None:
+        import onnxruntime as ort
+
+        from jetbot_rt.train.export import weights_as_inputs
+
         super().__init__(env)
         self.model_config = model
         self.index = index
-        self._session: Any = None
         self._obs: np.ndarray | None = None
+        # Built with the env, as the worker starts (~0.3 s of CPU), not in the first rollout.
+        if multiprocessing.parent_process() is not None:
+            torch.set_num_threads(1)  # one core per worker
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = options.inter_op_num_threads = 1
+        options.log_severity_level = 3  # no warning that the weights are inputs
+        self._session = ort.InferenceSession(weights_as_inputs(ActorCritic(model)), options,
+                                             providers=["CPUExecutionProvider"])
+        self._weights = {i.name for i in self._session.get_overridable_initializers()}
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
@@ -51,20 +63,10 @@ class PolicySampler(gym.Wrapper):
         return obs, info
 
     def _policy(self, weights: dict[str, torch.Tensor]) -> Callable[[np.ndarray], list]:
-        if self._session is None:
-            import onnxruntime as ort
-
-            from jetbot_rt.train.export import weights_as_inputs
-
-            if multiprocessing.parent_process() is not None:
-                torch.set_num_threads(1)  # one core per worker
-            options = ort.SessionOptions()
-            options.intra_op_num_threads = options.inter_op_num_threads = 1
-            options.log_severity_level = 3  # no warning that the weights are inputs
-            graph = weights_as_inputs(ActorCritic(self.model_config))
-            self._session = ort.InferenceSession(graph, options,
-                                                 providers=["CPUExecutionProvider"])
         feeds = {name: w.numpy() for name, w in weights.items()}
+        if set(feeds) != self._weights:  # a weight not fed would silently keep its first value
+            raise ValueError(f"weights {sorted(feeds)} do not match the network's "
+                             f"{sorted(self._weights)}")
         session = self._session
         return lambda frame: session.run(None, {"obs": frame.astype(np.float32), **feeds})
 
