@@ -2,7 +2,9 @@
 ``ppo_continuous_action.py``).
 
 One PyBullet client per worker process (``AsyncVectorEnv``), or all envs in the learner's
-process (``SyncVectorEnv``, ``workers=0``). Gymnasium 1.x vector envs autoreset in the *next*
+process (``SyncVectorEnv``, ``workers=0``). With worker processes the workers also run the
+policy, a whole rollout at a time (``sampler.py``, ``sample_in_workers``); otherwise the loop
+below computes every step's actions here. Gymnasium 1.x vector envs autoreset in the *next*
 step by default, which would put a reset observation paired with an ignored action into the
 rollout; we ask for SAME_STEP autoreset and bootstrap the time-limit truncation from the final
 observation's value.
