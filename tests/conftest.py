@@ -1,4 +1,10 @@
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -13,3 +19,74 @@ def private_runtime_dir(tmp_path_factory, monkeypatch):
     path = tmp_path_factory.mktemp("runtime")
     monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(path))
     return path
+
+
+# ---- pytest-xdist (README's `pytest -n 2`): tests that must have the machine to themselves --
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers", "exclusive: under pytest-xdist, runs while no other test runs (it loads "
+        "every core on purpose); the other workers wait")
+
+
+@contextlib.contextmanager
+def _flock(path: Path, how: int) -> Iterator[None]:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+    try:
+        fcntl.flock(fd, how)
+        yield
+    finally:
+        os.close(fd)  # drops the lock
+
+
+@contextlib.contextmanager
+def _room(config: pytest.Config, exclusive: bool) -> Iterator[None]:
+    """A readers-writer lock over the workers of one run (flock on files in the run's base
+    temp directory, shared by its workers): every test holds the room shared, an
+    ``exclusive`` one alone. The turnstile makes a waiting exclusive test go next instead of
+    starving while the other worker keeps starting tests."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:  # one process: nothing runs beside a test
+        yield
+        return
+    shared = config._tmp_path_factory.getbasetemp().parent  # type: ignore[attr-defined]
+    turnstile, room = shared / "exclusive.turnstile", shared / "exclusive.room"
+    with contextlib.ExitStack() as stack:
+        with _flock(turnstile, fcntl.LOCK_EX):
+            stack.enter_context(_flock(room, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH))
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    # Around set-up, call and tear-down: module and class fixtures set up for this item too.
+    with _room(item.config, item.get_closest_marker("exclusive") is not None):
+        yield
+
+
+WHOLE_FILES = {
+    "tests/test_train_ray.py": "its one-node class shares one Ray runtime, and two Ray clusters "
+                               "(a GCS, raylets, workers each) never start side by side",
+    "tests/test_train_cli.py": "its smoke training run (a module fixture) is made once",
+    "tests/test_record.py": "its sim recording (a module fixture) is made once",
+}
+"""Files whose tests one pytest-xdist worker runs, one after another (and first: they are
+the longest units). Every other test goes to whichever worker is free. (xdist's own
+``--dist loadgroup`` groups nothing on pytest 9.2: pytest-xdist issue #1386.)"""
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    if config.getvalue("dist") != "load":  # an explicit --dist other than -n's default
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Scheduling(LoadScopeScheduling):
+        """A work unit per test, or per file for ``WHOLE_FILES``; units with the most tests
+        go first (``--loadscope-reorder``, xdist's default)."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return path if path in WHOLE_FILES else nodeid
+
+    return Scheduling(config, log)

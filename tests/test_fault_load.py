@@ -47,6 +47,7 @@ def schedule_figures(ticks: list[dict]) -> dict[str, float]:
 
 
 @pytest.mark.skipif(shutil.which("gst-launch-1.0") is None, reason="needs gst-launch-1.0")
+@pytest.mark.exclusive  # its load is its own: nothing else runs beside it under pytest-xdist
 def test_two_busy_cores_the_loop_keeps_its_schedule_or_stops_safely(tmp_path: Path) -> None:
     """Real backend (GStreamer camera, emulated board), two busy-looping processes at the same
     nice level as the runtime: every missed deadline is counted as an overrun and no two ticks
