@@ -23,8 +23,12 @@ signal(7), every signal whose default action ends or stops the process, decided 
 
 from __future__ import annotations
 
+import _thread
 import contextlib
+import os
 import signal
+import sys
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -69,6 +73,8 @@ def install(handler: Callable[[int, Any], None]) -> None:
     for signum in HANDLED:
         with contextlib.suppress(OSError, ValueError, RuntimeError):  # not settable here
             signal.signal(signum, handler)
+    if handler is raise_interrupted and not isinstance(sys.unraisablehook, _SendAgain):
+        sys.unraisablehook = _SendAgain(sys.unraisablehook)
 
 
 def suspend_self() -> None:
@@ -88,15 +94,57 @@ class Interrupted(BaseException):
 
 
 _held: list[int] | None = None
+_in_hook = False
 
 
 def raise_interrupted(signum: int, _frame: Any) -> None:
     """The handler of commands that do not drive yet: raise ``Interrupted`` in the main
     thread, unless inside ``deferred()``, which raises it when it ends."""
+    if _in_hook:  # raised inside _SendAgain, it would be lost: later, once more
+        _send_again_later(signum)
+        return
     if _held is not None:
         _held.append(signum)
         return
     raise Interrupted(signum)
+
+
+class _SendAgain:
+    """``sys.unraisablehook`` that does not let Python swallow an ``Interrupted``.
+
+    Python runs a signal handler between two bytecodes of the main thread, and that can be
+    inside a weakref callback, a ``__del__`` or the garbage collector (the import system's
+    module-lock callbacks, during start-up's imports): an exception raised there cannot
+    propagate; Python prints "Exception ignored in ..." and carries on. Seen: a SIGQUIT 0.3 s
+    into ``jetbot-rt run`` lost this way, and the run drove for its whole duration. Instead,
+    the signal is sent again, once, from another thread a moment later: its handler runs
+    again where the main thread is then (raising there, or, once ``run`` has installed its
+    own handlers, tripping the safe stop). Sent from here, the handler would run at once,
+    inside this hook."""
+
+    def __init__(self, previous: Callable[[Any], object]) -> None:
+        self.previous = previous
+
+    def __call__(self, unraisable: Any) -> None:
+        global _in_hook
+        if not isinstance(unraisable.exc_value, Interrupted):
+            self.previous(unraisable)
+            return
+        _in_hook = True
+        try:
+            _send_again_later(unraisable.exc_value.signum)
+        finally:
+            _in_hook = False
+
+
+def _send_again_later(signum: int) -> None:
+    with contextlib.suppress(RuntimeError):  # the interpreter is shutting down
+        _thread.start_new_thread(_send_again, (signum,))
+
+
+def _send_again(signum: int) -> None:
+    time.sleep(0.01)  # the hook has returned
+    os.kill(os.getpid(), signum)
 
 
 @contextlib.contextmanager

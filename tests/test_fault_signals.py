@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -173,6 +175,33 @@ def test_signal_during_start_up_ends_in_order(tmp_path: Path, sig: int, delay: f
         assert result.records[-1]["reason"] == f"{signals.name(sig)} received"
     assert rt.board_off()
     assert_no_gst_left(mark)
+
+
+SWALLOWED = """
+import signal, sys, time, weakref
+from jetbot_rt import signals
+signals.install(signals.raise_interrupted)
+class Thing: pass
+thing = Thing()
+def callback(_ref):  # as the import system's module-lock callbacks: an exception is ignored
+    signal.raise_signal(signal.SIGQUIT)
+ref = weakref.ref(thing, callback)
+try:
+    del thing
+    time.sleep(30)
+    print("lost")
+except signals.Interrupted as exc:
+    print("interrupted", exc)
+"""
+
+
+def test_a_signal_python_swallows_is_sent_again() -> None:
+    """A signal handled inside a weakref callback (where Python ignores the handler's
+    exception, as it did in a start-up's imports) ends the command all the same."""
+    result = subprocess.run([sys.executable, "-c", SWALLOWED], capture_output=True, text=True,
+                            timeout=60)
+    assert result.stdout.strip() == "interrupted SIGQUIT", result.stdout + result.stderr
+    assert result.stderr == ""
 
 
 # ---- check --spin and stop under signals ---------------------------------------------------
