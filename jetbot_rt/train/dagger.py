@@ -50,6 +50,8 @@ from jetbot_rt.train.wrappers import Shaping
 METRIC_FIELDS = ("iteration", "global_step", "wall_s", "collect_s", "regress_s", "dataset",
                  "beta", "episodes", "success_rate", "expert_success_rate", "loss")
 NO_SHAPING = Shaping("none", 0.0, 0.0, 0.0, 0.0)
+EXPERT_INFO = ("pose", "goal_xy", "speed", "is_success")
+"""The info keys DAgger reads: the expert's inputs, and the outcome of an episode."""
 
 
 class Dataset:
@@ -128,8 +130,8 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Expert, data: Dataset,
 
 
 def make_envs(args: DAggerArgs, image_size: int) -> VectorEnv:
-    factories = [partial(_worker_env, args.task, args.config, NO_SHAPING, image_size)
-                 for _ in range(args.num_envs)]
+    factories = [partial(_worker_env, args.task, args.config, NO_SHAPING, image_size,
+                         keep=EXPERT_INFO) for _ in range(args.num_envs)]
     if args.workers == 0:
         return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
     return AsyncVectorEnv(factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP,

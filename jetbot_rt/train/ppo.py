@@ -116,14 +116,16 @@ def _prepare_out(out: Path) -> None:
 
 
 def _worker_env(task: str, config: Config, shaping: Shaping, image_size: int,
-                sampler: ModelConfig | None = None, index: int = 0) -> Any:
+                sampler: ModelConfig | None = None, index: int = 0,
+                keep: tuple[str, ...] = EPISODE_INFO) -> Any:
     """Built inside each worker: Ctrl-C is the learner's to handle (it saves a checkpoint
     and then closes the workers), not a traceback from every worker. ``sampler``: the
-    network of a ``PolicySampler`` around the env (env ``index``)."""
+    network of a ``PolicySampler`` around the env (env ``index``); ``keep``: the info keys
+    the trainer reads."""
     if multiprocessing.parent_process() is not None:  # AsyncVectorEnv also calls it here
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     env = KeepInfo(make_train_env(task, config, shaping, image_size=(image_size, image_size)),
-                   EPISODE_INFO)
+                   keep)
     return env if sampler is None else PolicySampler(env, sampler, index)
 
 
