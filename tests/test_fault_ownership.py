@@ -310,7 +310,7 @@ def test_two_simulations_run_side_by_side(tmp_path: Path) -> None:
         for rt in runs:
             rt.kill()
     for result in results:
-        assert result.returncode == 0, result.stderr
+        assert result.returncode == 0, result.stdout + result.stderr  # the summary says why
         assert "Traceback" not in result.stderr
         assert result.records[-1]["cmd"] == [0.0, 0.0] and len(result.ticks) >= 5
     assert not list((tmp_path / "run").glob("control-*.sock")), "sockets left behind"
