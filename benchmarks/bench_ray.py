@@ -71,7 +71,8 @@ def ppo_rate(kind: str, num_envs: int, workers: int, updates: int, num_steps: in
                        total_timesteps=num_envs * num_steps * updates, device="cpu",
                        out=out, progress=False, checkpoint_every=10**6,
                        ray="local" if kind == "ray" else None,
-                       workers=workers if kind == "ray" else None)
+                       workers=workers if kind == "ray" else None,
+                       sample_in_workers=False)  # both the per-step loop: Ray's own overhead
         return float(train(args)["steps_per_s"])
 
 
