@@ -129,6 +129,24 @@ def _worker_env(task: str, config: Config, shaping: Shaping, image_size: int,
     return env if sampler is None else PolicySampler(env, sampler, index)
 
 
+def _close(envs: VectorEnv, interrupted: bool) -> None:
+    """Close the env workers. Ctrl-C can stop the learner half-way through reading a worker's
+    message (with ``sample_in_workers`` it waits in that read for most of a rollout): the rest
+    in the pipe cannot be read, and gymnasium's close would read it (seen: EOFError, exit 1
+    instead of 130). After Ctrl-C the worker processes are ended and nothing more is read."""
+    vector = envs.unwrapped
+    if not (interrupted and isinstance(vector, AsyncVectorEnv)):
+        envs.close()
+        return
+    for process in vector.processes:
+        process.terminate()
+    for process in vector.processes:
+        process.join()
+    for pipe in vector.parent_pipes:
+        pipe.close()
+    vector.closed = True  # its __del__ would try again
+
+
 def samples_in_workers(args: PPOArgs) -> bool:
     """Whether the env workers run the policy through whole rollouts (``sampler.py``)."""
     return args.sample_in_workers and args.ray is None and args.workers != 0
@@ -415,7 +433,7 @@ def train(args: PPOArgs) -> dict[str, Any]:
             save()
     finally:
         bar.close()
-        envs.close()
+        _close(envs, interrupted)
         if writer is not None:
             writer.close()
 
