@@ -23,14 +23,19 @@ def test_expert_turns_toward_the_goal_and_stops_short_of_it():
     ahead_left = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.6, 0.1]), 0.0)
     ahead_right = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.6, -0.1]), 0.0)
     assert ahead_left[1] > ahead_left[0] > 0 and ahead_right[0] > ahead_right[1] > 0
-    for side in (0.5, -0.5):  # out of view: spins left in place whichever side it is on
+    for side in (0.5, -0.5):  # out of view: turns left backing away, whichever side it is on
         out_of_view = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.2, side]), 0.0)
-        assert out_of_view.tolist() == [-1.0, 1.0]
+        assert out_of_view.tolist() == pytest.approx([-1.0, 0.3])
     behind = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([-0.5, 0.01]), 0.0)
     straight = EXPERT.act(np.array([0.0, 0.0, math.pi / 2]), np.array([0.0, 1.0]), 0.0)
     assert straight.tolist() == pytest.approx([1.0, 1.0])
     near = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([EXPERT.stop_distance - 0.01, 0]), 0)
     assert near.tolist() == [0.0, 0.0]
+    # closer than the back-off distance (the block below the camera's view): backs away slowly
+    blind = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([EXPERT.backoff_distance - 0.005, 0]),
+                       0)
+    assert blind.tolist() == pytest.approx([EXPERT.backoff, EXPERT.backoff])
+    assert EXPERT.backoff < 0 < EXPERT.backoff_distance < EXPERT.stop_distance
     lead = Expert(stop_lead=0.15)
     fast = lead.act(np.array([0.0, 0.0, 0.0]), np.array([lead.stop_distance + 0.02, 0]), 0.3)
     assert fast.tolist() == [0.0, 0.0]  # with a lead, moving: stops earlier
@@ -70,13 +75,25 @@ def test_regression_fits_the_labels():
     assert np.abs(mu - labels).max() < 0.1
 
 
+def test_learning_rate_falls_geometrically_to_the_final_one():
+    from jetbot_rt.train.dagger import dagger_args, learning_rate_at
+
+    args = dagger_args("seek", {"iterations": 3, "learning_rate": 1e-3,
+                                "final_learning_rate": 1e-5})
+    assert [learning_rate_at(args, i) for i in range(3)] == pytest.approx([1e-3, 1e-4, 1e-5])
+    constant = dagger_args("seek", {"iterations": 3})
+    assert {learning_rate_at(constant, i) for i in range(3)} == {constant.learning_rate}
+
+
 def test_train_algo_dagger_writes_the_run_directory(tmp_path, capsys):
     out = tmp_path / "seek"
     result = train_here(capsys, "train", "--task", "seek", "--algo", "dagger", "--iterations", "2",
                        "--steps-per-iteration", "20", "--train-samples", "64", "--beta", "1",
-                       "--num-envs", "1", "--workers", "0", "--out", str(out), "--no-progress")
+                       "--num-envs", "1", "--workers", "0", "--out", str(out), "--no-progress",
+                       "--snapshots", "2")
     assert result.returncode == 0, result.stderr
-    for name in ("checkpoint.pt", "policy.onnx", "metrics.csv", "learning_curve.png"):
+    for name in ("checkpoint.pt", "policy.onnx", "metrics.csv", "learning_curve.png",
+                 "policy_2.onnx"):
         assert (out / name).stat().st_size > 0, name
     with (out / "metrics.csv").open() as handle:
         rows = list(csv.DictReader(handle))

@@ -15,6 +15,7 @@ from typing import Any
 from jetbot_rt.config import Config
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE, get_task
+from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.wrappers import Shaping
 
 LEGACY_IMAGE_SIZE, LEGACY_POOL = 224, 4
@@ -241,7 +242,7 @@ class DAggerArgs:
     """Envs stepped together, each in a worker process of its own; one per core by default."""
     workers: int | None = None
     """0: all envs in the training process (SyncVectorEnv); None: one process per env."""
-    iterations: int = 12
+    iterations: int = 20
     """DAgger iterations (iteration 0: the expert drives)."""
     steps_per_iteration: int = 3000
     """Env steps collected per iteration, over all envs (finished episodes only count)."""
@@ -257,12 +258,30 @@ class DAggerArgs:
     batch_size: int = 128
     """Frames per Adam step."""
     learning_rate: float = 1e-3
-    """Adam's step size."""
+    """Adam's step size in the first iteration."""
+    final_learning_rate: float | None = None
+    """Adam's step size in the last iteration, reached by geometric steps from
+    ``learning_rate`` (None: constant). Late iterations then refine the student instead of
+    swinging it from one rollout to the next."""
     stop_weight: float = 4.0
-    """Loss weight of frames the expert labels stop ([0, 0]): few, and the ones that decide
-    whether the block is pushed."""
-    torch_threads: int = field(default_factory=lambda: usable_cores())
-    """Learner threads during the regression (the env workers are idle then)."""
+    """Loss weight of frames the expert labels stop or back off (both wheels <= 0): few, and
+    the ones that decide whether the block is pushed."""
+    stop_distance: float = Expert.stop_distance
+    """m; the expert commands zero from this distance to the goal on (``Expert``)."""
+    min_forward: float = Expert.min_forward
+    """The expert's slowest forward command while driving (``Expert``); times max_speed it
+    must stay above the dead-band it trains with."""
+    search_left: float = Expert.search_left
+    """The expert's left wheel command while the goal is out of view (``Expert``)."""
+    search_right: float = Expert.search_right
+    """The expert's right wheel command while the goal is out of view (``Expert``)."""
+    backoff_distance: float = Expert.backoff_distance
+    """m; the expert backs away closer than this (``Expert``; 0: never)."""
+    snapshots: int = 0
+    """Also export ``policy_<iteration>.onnx`` every this many iterations (0: never)."""
+    torch_threads: int = 1
+    """Learner threads during the regression (the env workers are idle then). One: on two
+    shared cores two threads spin more than they compute (docs/TRAINING.md)."""
     progress: bool = True
     """Show a progress bar."""
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -129,6 +129,15 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Expert, data: Dataset,
             "expert_success_rate": round(float(np.mean(teacher)), 3) if teacher else ""}
 
 
+def learning_rate_at(args: DAggerArgs, iteration: int) -> float:
+    """The step size of the regression after rollout ``iteration`` (0-based)."""
+    if args.final_learning_rate is None or args.iterations <= 1:
+        return args.learning_rate
+    ratio = args.final_learning_rate / args.learning_rate
+    return args.learning_rate * ratio ** (min(iteration, args.iterations - 1)
+                                          / (args.iterations - 1))
+
+
 def make_envs(args: DAggerArgs, image_size: int) -> VectorEnv:
     factories = [partial(_worker_env, args.task, args.config, NO_SHAPING, image_size,
                          keep=EXPERT_INFO) for _ in range(args.num_envs)]
@@ -198,7 +207,9 @@ def train(args: DAggerArgs) -> dict[str, Any]:
     model.eval()
     rng = np.random.default_rng(args.seed + iteration)
     max_speed = max_speed_of(args.config, get_task(args.task))
-    expert = Expert()
+    expert = Expert(stop_distance=args.stop_distance, min_forward=args.min_forward,
+                    search_left=args.search_left, search_right=args.search_right,
+                    backoff_distance=args.backoff_distance)
     envs = make_envs(args, model.config.image_size)
     data = Dataset(envs.single_observation_space.shape)
     start = time.perf_counter()
@@ -223,6 +234,8 @@ def train(args: DAggerArgs) -> dict[str, Any]:
             row = collect(envs, model, expert, data, args, iteration, rng, bar)
             global_step += row.pop("steps")
             torch.set_num_threads(args.torch_threads)
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate_at(args, iteration)
             collected = time.perf_counter()
             loss = regress(model, optimizer, data, args, rng)
             iteration += 1
@@ -231,6 +244,9 @@ def train(args: DAggerArgs) -> dict[str, Any]:
                        regress_s=round(time.perf_counter() - collected, 1),
                        wall_s=round(wall_before + time.perf_counter() - start, 1))
             _write_metrics_row(metrics_path, row, METRIC_FIELDS)
+            if args.snapshots and iteration % args.snapshots == 0:
+                export_model(model.eval(), out / f"policy_{iteration}.onnx", task=args.task,
+                             max_speed=max_speed)
             bar.set_postfix(succ=row["success_rate"], loss=row["loss"], refresh=False)
             save()
     except KeyboardInterrupt:

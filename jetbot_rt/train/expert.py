@@ -33,14 +33,27 @@ class Expert:
     """Forward command per m beyond the stop point."""
     search_bearing_deg: float = 30.0
     """Beyond this bearing error the goal is out of the camera's view (its half field of view
-    is 41 degrees nominal, 34 at the narrowest randomized one): spin left in place, whichever
-    side the goal is on. A student that sees only the frame cannot know that side, and labels
-    that said "turn toward it" averaged to zero there: it stalled."""
-    search_turn: float = 1.0
-    """The spin's command per wheel (-, +)."""
+    is 41 degrees nominal, 34 at the narrowest randomized one): turn left (``search_left``,
+    ``search_right``), whichever side the goal is on. A student that sees only the frame
+    cannot know that side, and labels that said "turn toward it" averaged to zero there: it
+    stalled."""
+    search_left: float = -1.0
+    """The search's left wheel command."""
+    search_right: float = 0.3
+    """The search's right wheel command: with the left wheel's -1 a turn to the left that
+    backs away (a spin in place, (-1, 1), would sweep the robot's front into a block that
+    sits too close to be seen)."""
     min_forward: float = 0.75
     """The slowest forward command while driving: the dead-band (up to 0.3 of duty) eats
     0.6 of the command at max_speed 0.5, so less would stall."""
+    backoff_distance: float = 0.11
+    """m; closer than this the expert backs away at ``backoff`` instead of waiting (0:
+    never). A robot that coasts this far (latency, a fast robot) has the block slipping below
+    the camera's view (a sliver of red at 0.10 m), a frame a student took for "goal out of
+    view": it searched, and pushed the block. Taught to back away there, it does not."""
+    backoff: float = -0.3
+    """The command of both wheels while backing away: slow, so that it stops again before
+    the stop distance (at -0.8 the expert itself hunted back and forth under latency)."""
 
     def act(self, pose: np.ndarray, goal_xy: np.ndarray, speed: float) -> np.ndarray:
         """``[left, right]`` in [-1, 1] for one robot."""
@@ -50,10 +63,12 @@ class Expert:
         error = math.atan2(dy, dx) - yaw
         error = math.atan2(math.sin(error), math.cos(error))
         beyond = distance - (self.stop_distance + self.stop_lead * speed)
+        if distance < self.backoff_distance:
+            return np.full(2, self.backoff, dtype=np.float32)
         if beyond <= 0.0:
             return np.zeros(2, dtype=np.float32)
         if abs(error) > math.radians(self.search_bearing_deg):
-            return np.array([-self.search_turn, self.search_turn], dtype=np.float32)
+            return np.array([self.search_left, self.search_right], dtype=np.float32)
         turn = float(np.clip(self.turn_gain * error, -1.0, 1.0))
         forward = float(np.clip(self.forward_gain * beyond, self.min_forward, 1.0))
         forward *= max(math.cos(error), 0.0)
