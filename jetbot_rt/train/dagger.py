@@ -76,7 +76,7 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
     loss."""
     model.train()
     losses: list[float] = []
-    stop = np.all(data.labels == 0.0, axis=1)
+    stop = np.all(data.labels <= 0.0, axis=1)  # stop or back off
     weights = torch.from_numpy(np.where(stop, args.stop_weight, 1.0).astype(np.float32))
     passes = -(-args.train_samples // max(len(data), 1))
     order = np.concatenate([rng.permutation(len(data)) for _ in range(passes)])
