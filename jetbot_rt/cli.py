@@ -92,10 +92,19 @@ def main(argv: list[str] | None = None) -> int:
             signals.install(signals.raise_interrupted)
             return _main(argv)
     except signals.Interrupted as exc:
-        print(f"jetbot-rt {command}: stopped by {exc}".replace("  ", " "), file=sys.stderr,
-              flush=True)
-        # An orderly end, as a signal while driving is; a self-test cut short did not pass.
-        return 1 if command == "check" else 0
+        return _stopped_by(command, str(exc))
+    except Exception:
+        signum = signals.raised_first()
+        if signum is None:
+            raise
+        return _stopped_by(command, signals.name(signum))  # the error replaced the Interrupted
+
+
+def _stopped_by(command: str, name: str) -> int:
+    print(f"jetbot-rt {command}: stopped by {name}".replace("  ", " "), file=sys.stderr,
+          flush=True)
+    # An orderly end, as a signal while driving is; a self-test cut short did not pass.
+    return 1 if command == "check" else 0
 
 
 def _main(argv: list[str] | None) -> int:

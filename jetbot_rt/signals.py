@@ -95,6 +95,8 @@ class Interrupted(BaseException):
 
 _held: list[int] | None = None
 _in_hook = False
+_raised: list[int] = []
+"""Signals whose ``Interrupted`` ``raise_interrupted`` raised (see ``raised_first``)."""
 
 
 def raise_interrupted(signum: int, _frame: Any) -> None:
@@ -106,7 +108,15 @@ def raise_interrupted(signum: int, _frame: Any) -> None:
     if _held is not None:
         _held.append(signum)
         return
+    _raised.append(signum)
     raise Interrupted(signum)
+
+
+def raised_first() -> int | None:
+    """The first signal whose ``Interrupted`` was raised, if any: C code it was raised in can
+    replace it with an error of its own (numpy's extension init: "ImportError: PyCapsule_Import
+    could not import module datetime"), which then reaches the command's end in its place."""
+    return _raised[0] if _raised else None
 
 
 class _SendAgain:

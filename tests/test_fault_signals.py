@@ -204,6 +204,28 @@ def test_a_signal_python_swallows_is_sent_again() -> None:
     assert result.stderr == ""
 
 
+REPLACED = """
+import signal, sys
+from jetbot_rt import cli
+def start_up(argv):  # numpy's C init turns the Interrupted of an import into an ImportError
+    try:
+        signal.raise_signal(signal.SIGTERM)
+    except BaseException:
+        raise ImportError('PyCapsule_Import could not import module "datetime"') from None
+cli._main = start_up
+sys.exit(cli.main(["run"]))
+"""
+
+
+def test_a_signal_whose_interrupted_an_error_replaced_still_ends_in_order() -> None:
+    """Seen: SIGTERM 0.05 s into ``jetbot-rt run`` landed in numpy's import, whose C code
+    raised an ImportError in its place (a traceback, exit 1)."""
+    result = subprocess.run([sys.executable, "-c", REPLACED], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == "jetbot-rt run: stopped by SIGTERM\n"
+
+
 # ---- check --spin and stop under signals ---------------------------------------------------
 
 
