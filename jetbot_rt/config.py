@@ -335,8 +335,11 @@ class RandomizeConfig:
         default_factory=lambda: [0.8, 1.2], metadata=_range(0.2, 2.8)
     )
     """Factor (duckietown: camera_fov_y 0.8..1.2)."""
-    floor_color: List[float] = field(default_factory=lambda: [0.6, 1.4], metadata=_range(0, 5))
+    floor_color: List[float] = field(default_factory=lambda: [0.35, 1.4], metadata=_range(0, 5))
     """Factor on all three channels (lighter or darker), then ``tint``."""
+    floor_plain: float = field(default=0.3, metadata=_within(0.0, 1.0))
+    """Probability that an episode's floor is plain (every tile one colour) instead of
+    ``[sim] floor_texture``'s checker: real floors are rarely a checker board."""
     wall_color: List[float] = field(default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5))
     """Factor on all three channels of each wall apart, then ``tint``."""
     block_color: List[float] = field(default_factory=lambda: [0.8, 1.1], metadata=_range(0, 5))
@@ -348,7 +351,7 @@ class RandomizeConfig:
     )
     """light_direction: this elevation above the floor, from any azimuth."""
     light_intensity: List[float] = field(
-        default_factory=lambda: [0.7, 1.3], metadata=_range(0, 3)
+        default_factory=lambda: [0.5, 1.3], metadata=_range(0, 3)
     )
     image_noise: List[float] = field(default_factory=lambda: [0.0, 0.03], metadata=_range(0, 1))
     image_blur: List[float] = field(default_factory=lambda: [0.0, 0.006], metadata=_range(0, 0.1))

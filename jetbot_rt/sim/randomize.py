@@ -22,7 +22,7 @@ DRAWN = (
     "wheel_gain", "motor_gain", "deadband", "latency", "camera_latency", "stall_torque",
     "camera_pitch_deg", "camera_height", "camera_vfov_deg", "floor_color", "wall_color",
     "block_color", "light_direction", "light_intensity", "image_noise", "image_blur",
-    "image_brightness", "image_contrast", "seed",
+    "image_brightness", "image_contrast", "seed", "floor_texture",
 )
 """The [sim] keys a draw sets (``seed`` seeds the episode's image noise)."""
 
@@ -77,6 +77,8 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
         "image_brightness": _r(_uniform(rng, r.image_brightness)),
         "image_contrast": _r(_uniform(rng, r.image_contrast)),
         "seed": int(rng.integers(2**31)),
+        # drawn last, so that adding it left every earlier draw of a seed as it was
+        "floor_texture": "plain" if rng.random() < r.floor_plain else base.floor_texture,
     }
     out = dataclasses.replace(base)
     for key, value in drawn.items():  # a draw must be a valid [sim] table (replayable)
