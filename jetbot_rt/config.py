@@ -340,6 +340,16 @@ class RandomizeConfig:
     floor_plain: float = field(default=0.3, metadata=_within(0.0, 1.0))
     """Probability that an episode's floor is plain (every tile one colour) instead of
     ``[sim] floor_texture``'s checker: real floors are rarely a checker board."""
+    plain_floor_grey: List[float] = field(
+        default_factory=lambda: [0.15, 0.8], metadata=_range(0, 1)
+    )
+    """A plain floor's colour: this grey level, then each channel times ``plain_floor_tint``
+    (carpets, linoleum, wood: any hue, dark or light)."""
+    plain_floor_tint: List[float] = field(
+        default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5)
+    )
+    """Factor on each channel of a plain floor apart; red at most 1 (never redder than grey:
+    the goal is the red block)."""
     wall_color: List[float] = field(default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5))
     """Factor on all three channels of each wall apart, then ``tint``."""
     block_color: List[float] = field(default_factory=lambda: [0.8, 1.1], metadata=_range(0, 5))

@@ -62,6 +62,9 @@ def test_draws_lie_in_their_ranges_and_cover_them():
     plain = sum(d.floor_texture == "plain" for d in draws) / len(draws)
     assert 0.2 < plain < 0.4  # floor_plain = 0.3 of them; the rest keep [sim]'s checker
     assert {d.floor_texture for d in draws} == {"plain", "checker"}
+    plain_floors = np.array([d.floor_color for d in draws if d.floor_texture == "plain"])
+    assert plain_floors.min() < 0.15 and plain_floors.max() > 0.8  # dark and light, any hue
+    assert all(f[0] <= max(f[1:]) / 0.7 + 1e-6 for f in plain_floors)  # never a red floor
     light = np.array([d.light_intensity for d in draws])
     assert 0.5 <= light.min() < 0.55 and 1.25 < light.max() <= 1.3
 

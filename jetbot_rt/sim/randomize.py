@@ -77,9 +77,15 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
         "image_brightness": _r(_uniform(rng, r.image_brightness)),
         "image_contrast": _r(_uniform(rng, r.image_contrast)),
         "seed": int(rng.integers(2**31)),
-        # drawn last, so that adding it left every earlier draw of a seed as it was
-        "floor_texture": "plain" if rng.random() < r.floor_plain else base.floor_texture,
     }
+    # drawn last, so that adding them left every earlier draw of a seed as it was
+    plain = rng.random() < r.floor_plain
+    grey = _uniform(rng, r.plain_floor_grey)
+    hue = _uniform(rng, r.plain_floor_tint, 3)
+    hue[0] = min(hue[0], 1.0)
+    drawn["floor_texture"] = "plain" if plain else base.floor_texture
+    if plain:
+        drawn["floor_color"] = [_r(min(grey * h, 1.0)) for h in hue]
     out = dataclasses.replace(base)
     for key, value in drawn.items():  # a draw must be a valid [sim] table (replayable)
         try:
