@@ -126,3 +126,8 @@ def test_training_through_worker_processes_samples_in_them(tmp_path):
     summary = train(args)
     assert summary["global_step"] == 128 and summary["updates"] == 2
     assert (tmp_path / "policy.onnx").stat().st_size > 0
+    # The weights went to the workers as plain bytes: a torch tensor is pickled as a file
+    # descriptor served by this thread, whose traceback ended a Ctrl-C (a worker dying
+    # mid-handover) in CI.
+    from multiprocessing import resource_sharer
+    assert resource_sharer._resource_sharer._listener is None, "weights sent as shared memory"

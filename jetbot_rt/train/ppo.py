@@ -286,7 +286,10 @@ def train(args: PPOArgs) -> dict[str, Any]:
                 optimizer.param_groups[0]["lr"] = frac * args.learning_rate
 
             if sampling:  # the workers run the policy through the whole rollout
-                weights = to_cpu(model.state_dict())
+                # numpy, not tensors: torch pickles a tensor as a shared-memory file descriptor
+                # handed over by a resource_sharer thread, which printed a traceback when a
+                # worker died on Ctrl-C mid-handover.
+                weights = {name: w.numpy() for name, w in to_cpu(model.state_dict()).items()}
                 segment = stack_segments(envs.unwrapped.call(
                     "collect", weights, args.num_steps, (args.seed, update)))
                 global_step += args.num_steps * args.num_envs

@@ -62,17 +62,17 @@ class PolicySampler(gym.Wrapper):
         self._obs = obs
         return obs, info
 
-    def _policy(self, weights: dict[str, torch.Tensor]) -> Callable[[np.ndarray], list]:
-        feeds = {name: w.numpy() for name, w in weights.items()}
+    def _policy(self, weights: dict[str, np.ndarray]) -> Callable[[np.ndarray], list]:
+        feeds = {name: np.asarray(w) for name, w in weights.items()}
         if set(feeds) != self._weights:  # a weight not fed would silently keep its first value
             raise ValueError(f"weights {sorted(feeds)} do not match the network's "
                              f"{sorted(self._weights)}")
         session = self._session
         return lambda frame: session.run(None, {"obs": frame.astype(np.float32), **feeds})
 
-    def collect(self, weights: dict[str, torch.Tensor], num_steps: int,
+    def collect(self, weights: dict[str, np.ndarray], num_steps: int,
                 seed: tuple[int, int]) -> dict[str, Any]:
-        """``num_steps`` steps with the policy of ``weights`` (CPU tensors named as in the
+        """``num_steps`` steps with the policy of ``weights`` (arrays named as in the
         network's ``state_dict``); ``seed``: (run seed, update).
 
         Returns arrays over the steps -- ``obs`` (the frame the action was chosen on),
