@@ -60,7 +60,7 @@ def test_regression_fits_the_labels():
     frames = rng.integers(0, 256, (8, 56, 56, 3), dtype=np.uint8)
     frames[:4, :, :, 0] = 255  # red-ish frames: drive; the others: stop
     labels = np.array([[0.8, 0.9]] * 4 + [[0.0, 0.0]] * 4, dtype=np.float32)
-    data.add(list(frames), list(labels))
+    data.add(frames, labels)
     torch.manual_seed(0)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # two threads on two busy cores spin more than they compute
@@ -73,6 +73,22 @@ def test_regression_fits_the_labels():
     with torch.no_grad():
         mu = model(torch.from_numpy(frames))[0].numpy()
     assert np.abs(mu - labels).max() < 0.1
+
+
+def test_photometric_jitter_scales_each_frame_within_its_range():
+    from jetbot_rt.train.dagger import jitter
+
+    rng = np.random.default_rng(0)
+    x = torch.full((400, 3, 8, 8), 0.5)
+    x[:, :, :4] = 0.25  # contrast shows as the spread between the halves
+    out = jitter(x, 0.2, rng)
+    assert out.shape == x.shape and out.min() >= 0.0 and out.max() <= 1.0
+    gain = out[:, :, 4:].mean((2, 3)) / 0.5  # per frame and channel
+    assert gain.min() < 0.85 and gain.max() > 1.15  # brightness, contrast, channel together
+    assert gain.min() > 0.8 * 0.8 * 0.9 - 0.1 and gain.max() < 1.2 * 1.2 * 1.1 + 0.1
+    channel_spread = (gain / gain.mean(1, keepdim=True)).std()
+    assert channel_spread > 0.02  # the channels are scaled apart, not together
+    assert torch.equal(jitter(x, 0.0, rng), x)
 
 
 def test_learning_rate_falls_geometrically_to_the_final_one():

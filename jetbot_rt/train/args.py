@@ -263,6 +263,10 @@ class DAggerArgs:
     """Adam's step size in the last iteration, reached by geometric steps from
     ``learning_rate`` (None: constant). Late iterations then refine the student instead of
     swinging it from one rollout to the next."""
+    photometric_jitter: float = 0.0
+    """Each regressed frame's brightness and contrast scaled by factors drawn from
+    1 +- this, each colour channel by 1 +- half of it (0: frames as rendered): lighting the
+    randomization draws once per episode varies for every frame."""
     stop_weight: float = 4.0
     """Loss weight of frames the expert labels stop or back off (both wheels <= 0): few, and
     the ones that decide whether the block is pushed."""

@@ -32,10 +32,11 @@ from jetbot_rt.train.checkpoint import (
     model_from_checkpoint,
     save_checkpoint,
 )
+from jetbot_rt.train.dagger_sampler import LabelSampler
 from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.export import export_model
-from jetbot_rt.train.model import ActorCritic
+from jetbot_rt.train.model import ActorCritic, ModelConfig
 from jetbot_rt.train.ppo import (
     CURVE_NAME,
     METRICS_NAME,
@@ -61,13 +62,27 @@ class Dataset:
         self.frames = np.zeros((0, *shape), dtype=np.uint8)
         self.labels = np.zeros((0, 2), dtype=np.float32)
 
-    def add(self, frames: list[np.ndarray], labels: list[np.ndarray]) -> None:
-        if frames:
+    def add(self, frames: np.ndarray, labels: np.ndarray) -> None:
+        if len(frames):
             self.frames = np.concatenate([self.frames, np.stack(frames)])
             self.labels = np.concatenate([self.labels, np.stack(labels)])
 
     def __len__(self) -> int:
         return len(self.labels)
+
+
+def jitter(x: torch.Tensor, amount: float, rng: np.random.Generator) -> torch.Tensor:
+    """``x`` (preprocessed, 0..1) with per-frame brightness, contrast (about the frame's mean)
+    and colour-channel gains drawn from 1 +- ``amount`` (channels 1 +- ``amount`` / 2)."""
+    n = x.shape[0]
+
+    def factors(size: tuple[int, ...], spread: float) -> torch.Tensor:
+        return torch.from_numpy(rng.uniform(1 - spread, 1 + spread, size).astype(np.float32))
+
+    brightness, contrast = factors((n, 1, 1, 1), amount), factors((n, 1, 1, 1), amount)
+    channels = factors((n, 3, 1, 1), amount / 2)
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    return (((x - mean) * contrast + mean) * brightness * channels).clamp(0.0, 1.0)
 
 
 def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
@@ -82,8 +97,10 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
     order = np.concatenate([rng.permutation(len(data)) for _ in range(passes)])
     for begin in range(0, args.train_samples, args.batch_size):
         idx = np.sort(order[begin:min(begin + args.batch_size, args.train_samples)])
-        frames = torch.from_numpy(data.frames[idx])
-        mu = model.heads(model.preprocess(frames))[0]
+        x = model.preprocess(torch.from_numpy(data.frames[idx]))
+        if args.photometric_jitter > 0:
+            x = jitter(x, args.photometric_jitter, rng)
+        mu = model.heads(x)[0]
         error = ((mu - torch.from_numpy(data.labels[idx])) ** 2).sum(-1)
         loss = (error * weights[idx]).sum() / weights[idx].sum()
         optimizer.zero_grad()
@@ -95,34 +112,24 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
 
 
 def collect(envs: VectorEnv, model: ActorCritic, expert: Expert, data: Dataset,
-            args: DAggerArgs, iteration: int, rng: np.random.Generator,
-            bar: tqdm) -> dict[str, float]:
-    """Roll out one iteration; add every frame of the finished episodes with its label."""
+            args: DAggerArgs, iteration: int, bar: tqdm) -> dict[str, Any]:
+    """Roll out one iteration in the env workers (``dagger_sampler``); add every frame of
+    their finished episodes with its label."""
     beta = 1.0 if iteration == 0 else args.beta * 0.5 ** (iteration - 1)
     n = envs.num_envs
-    seeds = [args.seed * 100_000 + iteration * 1000 + j for j in range(n)]
-    obs, infos = envs.reset(seed=seeds)
-    by_expert = rng.random(n) < beta
-    episode: list[tuple[list[np.ndarray], list[np.ndarray]]] = [([], []) for _ in range(n)]
+    # numpy, not tensors (see ppo.py): plain bytes through the pipes
+    weights = {name: w.detach().numpy().copy() for name, w in model.state_dict().items()}
+    results = envs.unwrapped.call(
+        "collect_labelled", weights, -(-args.steps_per_iteration // n),
+        (args.seed, iteration), beta, args.expert_noise, expert)
     outcomes: dict[bool, list[float]] = {True: [], False: []}
     steps = 0
-    while steps < args.steps_per_iteration:
-        labels = expert.act_batch(infos)
-        with torch.no_grad():
-            mu = model(torch.from_numpy(obs))[0].numpy()
-        noisy = labels + rng.normal(0.0, args.expert_noise, labels.shape).astype(np.float32)
-        action = np.where(by_expert[:, None], np.clip(noisy, -1, 1), np.clip(mu, -1, 1))
-        for j in range(n):
-            episode[j][0].append(obs[j].copy())
-            episode[j][1].append(labels[j])
-        obs, _, terminated, truncated, infos = envs.step(action)
-        for j in np.nonzero(np.logical_or(terminated, truncated))[0]:
-            steps += len(episode[j][0])
-            bar.update(len(episode[j][0]))
-            data.add(*episode[j])
-            episode[j] = ([], [])
-            outcomes[bool(by_expert[j])].append(float(infos["final_info"]["is_success"][j]))
-            by_expert[j] = rng.random() < beta
+    for result in results:
+        data.add(result["frames"], result["labels"])
+        steps += len(result["labels"])
+        for by_expert, success in result["outcomes"]:
+            outcomes[by_expert].append(float(success))
+    bar.update(steps)
     student, teacher = outcomes[False], outcomes[True]
     return {"beta": round(beta, 4), "episodes": len(student) + len(teacher), "steps": steps,
             "success_rate": round(float(np.mean(student)), 3) if student else "",
@@ -138,9 +145,16 @@ def learning_rate_at(args: DAggerArgs, iteration: int) -> float:
                                           / (args.iterations - 1))
 
 
-def make_envs(args: DAggerArgs, image_size: int) -> VectorEnv:
-    factories = [partial(_worker_env, args.task, args.config, NO_SHAPING, image_size,
-                         keep=EXPERT_INFO) for _ in range(args.num_envs)]
+def _labelling_env(task: str, config: Any, image_size: int, model: ModelConfig,
+                   index: int) -> LabelSampler:
+    """Built inside each worker (see ``ppo._worker_env``)."""
+    return LabelSampler(_worker_env(task, config, NO_SHAPING, image_size, keep=EXPERT_INFO),
+                        model, index)
+
+
+def make_envs(args: DAggerArgs, model: ModelConfig) -> VectorEnv:
+    factories = [partial(_labelling_env, args.task, args.config, model.image_size, model, j)
+                 for j in range(args.num_envs)]
     if args.workers == 0:
         return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
     return AsyncVectorEnv(factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP,
@@ -210,7 +224,7 @@ def train(args: DAggerArgs) -> dict[str, Any]:
     expert = Expert(stop_distance=args.stop_distance, min_forward=args.min_forward,
                     search_left=args.search_left, search_right=args.search_right,
                     backoff_distance=args.backoff_distance)
-    envs = make_envs(args, model.config.image_size)
+    envs = make_envs(args, model.config)
     data = Dataset(envs.single_observation_space.shape)
     start = time.perf_counter()
     total = args.iterations * args.steps_per_iteration
@@ -231,7 +245,7 @@ def train(args: DAggerArgs) -> dict[str, Any]:
         while iteration < args.iterations:
             torch.set_num_threads(1)
             began = time.perf_counter()
-            row = collect(envs, model, expert, data, args, iteration, rng, bar)
+            row = collect(envs, model, expert, data, args, iteration, bar)
             global_step += row.pop("steps")
             torch.set_num_threads(args.torch_threads)
             for group in optimizer.param_groups:

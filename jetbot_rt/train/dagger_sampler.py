@@ -1,0 +1,65 @@
+"""DAgger's rollouts inside the env worker processes: each worker drives whole episodes with
+its onnxruntime copy of the student (or the expert, with noise, for a ``beta`` share of the
+episodes), labels every frame with the expert's action and sends the finished episodes back
+at once, instead of a round trip to the learner for every step.
+
+Why: the learner's share of a step -- the student's forward pass on the frames, the expert on
+the infos, the pipes -- cost more than the env step itself (a DAgger iteration of 3 000 steps
+collected in 9-13 s on two idle cores, 2.4 ms of env step per core). The copy is the one PPO's
+sampler runs (``sampler.PolicySampler``); the labels are the same function of the state.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from jetbot_rt.train.expert import Expert
+from jetbot_rt.train.model import ModelConfig
+from jetbot_rt.train.sampler import PolicySampler
+
+
+class LabelSampler(PolicySampler):
+    """The env of one DAgger worker, with ``collect_labelled``."""
+
+    def __init__(self, env: gym.Env, model: ModelConfig, index: int) -> None:
+        super().__init__(env, model, index)
+        self._info: dict[str, Any] = {}
+
+    def collect_labelled(self, weights: dict[str, np.ndarray], min_steps: int,
+                         seed: tuple[int, int], beta: float, noise: float,
+                         expert: Expert) -> dict[str, Any]:
+        """Whole episodes until at least ``min_steps`` frames; ``seed``: (run seed,
+        iteration), which seed the first scene (then the env's own draws) and the draws of
+        who drives and of the noise. Each episode is driven by the expert (action noise
+        ``noise``) with probability ``beta``, else by the student's ``mu``.
+
+        Returns ``frames`` (uint8, every frame an action was chosen on), ``labels`` (the
+        expert's action on each) and ``outcomes``: (driven by the expert, success) per
+        episode."""
+        policy = self._policy(weights)
+        rng = np.random.default_rng([seed[0], seed[1], self.index])
+        obs, info = self.env.reset(seed=seed[0] * 100_000 + seed[1] * 1000 + self.index)
+        frames: list[np.ndarray] = []
+        labels: list[np.ndarray] = []
+        outcomes: list[tuple[bool, bool]] = []
+        while len(frames) < min_steps:
+            by_expert = bool(rng.random() < beta)
+            done = False
+            while not done:
+                label = expert.act(info["pose"], info["goal_xy"], float(info["speed"]))
+                if by_expert:
+                    noisy = label + rng.normal(0.0, noise, 2).astype(np.float32)
+                    action = np.clip(noisy, -1.0, 1.0)
+                else:
+                    action = np.clip(policy(obs[None])[0][0], -1.0, 1.0)
+                frames.append(obs)
+                labels.append(label)
+                obs, _, terminated, truncated, info = self.env.step(action)
+                done = terminated or truncated
+            outcomes.append((by_expert, bool(info["is_success"])))
+            obs, info = self.env.reset()
+        return {"frames": np.stack(frames), "labels": np.stack(labels).astype(np.float32),
+                "outcomes": outcomes}
