@@ -242,7 +242,7 @@ class DAggerArgs:
     """Envs stepped together, each in a worker process of its own; one per core by default."""
     workers: int | None = None
     """0: all envs in the training process (SyncVectorEnv); None: one process per env."""
-    iterations: int = 20
+    iterations: int = 40
     """DAgger iterations (iteration 0: the expert drives)."""
     steps_per_iteration: int = 3000
     """Env steps collected per iteration, over all envs (finished episodes only count)."""
@@ -263,7 +263,7 @@ class DAggerArgs:
     """Adam's step size in the last iteration, reached by geometric steps from
     ``learning_rate`` (None: constant). Late iterations then refine the student instead of
     swinging it from one rollout to the next."""
-    photometric_jitter: float = 0.0
+    photometric_jitter: float = 0.3
     """Each regressed frame's brightness and contrast scaled by factors drawn from
     1 +- this, each colour channel by 1 +- half of it (0: frames as rendered): lighting the
     randomization draws once per episode varies for every frame."""
