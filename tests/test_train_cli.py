@@ -3,6 +3,7 @@ ONNX the runtime loads and drives, resume, export with parity, eval JSON, and ba
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import signal
@@ -326,3 +327,48 @@ def test_init_starts_from_another_tasks_checkpoint(smoke_run, tmp_path, capsys):
     after = torch.load(out / "checkpoint.pt", weights_only=True)
     assert after["task"] == "seek" and after["global_step"] == 32
     assert all(torch.equal(start[k], after["model"][k]) for k in start)  # lr 0: unchanged
+
+
+def _spawned_workers(pid: int) -> list[int]:
+    """The multiprocessing workers among the children of ``pid``."""
+    children = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        with contextlib.suppress(OSError):
+            children += (task / "children").read_text().split()
+    workers = []
+    for child in children:
+        with contextlib.suppress(OSError):
+            if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
+                workers.append(int(child))
+    return workers
+
+
+def test_ctrl_c_during_a_dagger_collection_ends_the_workers_at_once(tmp_path):
+    """An iteration's collection is one call to the workers (tens of seconds here): Ctrl-C
+    in it ends them instead of waiting for it, and saves and exits 130 as ever."""
+    out = tmp_path / "run"
+    args = ["train", "--task", "seek", "--out", str(out), "--no-progress",
+            "--steps-per-iteration", "40000"]
+    proc = subprocess.Popen([JETBOT_TRAIN, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while len(_spawned_workers(proc.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(_spawned_workers(proc.pid)) == 2, "no env workers"
+        time.sleep(4)  # the workers' env and onnxruntime session, then collection
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        began = time.monotonic()
+        _, stderr = proc.communicate(timeout=120)
+        took = time.monotonic() - began
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "pending call" not in stderr, stderr
+    # the collection alone would take ~100 s of 2 cores; saving and exporting take a few
+    assert took < 60, f"Ctrl-C took {took:.0f} s"
+    assert stderr.strip().splitlines()[-1].strip().endswith("--resume")
+    assert (out / "policy.onnx").stat().st_size > 0

@@ -42,6 +42,7 @@ from jetbot_rt.train.ppo import (
     METRICS_NAME,
     POLICY_NAME,
     Interrupted,
+    _close,
     _prepare_out,
     _worker_env,
     _write_metrics_row,
@@ -268,7 +269,9 @@ def train(args: DAggerArgs) -> dict[str, Any]:
         save()
     finally:
         bar.close()
-        envs.close()
+        # After Ctrl-C the workers are ended, not waited for: a whole iteration's
+        # collection is one call to them, and close() would wait for it to finish.
+        _close(envs, interrupted)
     export_model(model.eval(), out / POLICY_NAME, task=args.task, max_speed=max_speed)
     if metrics_path.exists():
         plot_curve(metrics_path, out / CURVE_NAME)
