@@ -225,13 +225,12 @@ def train(args: DAggerArgs) -> dict[str, Any]:
     expert = Expert(stop_distance=args.stop_distance, min_forward=args.min_forward,
                     search_left=args.search_left, search_right=args.search_right,
                     backoff_distance=args.backoff_distance)
-    envs = make_envs(args, model.config)
-    data = Dataset(envs.single_observation_space.shape)
     start = time.perf_counter()
     total = args.iterations * args.steps_per_iteration
     bar = tqdm(total=total, initial=min(global_step, total), disable=not args.progress,
                unit="step", dynamic_ncols=True)
     interrupted = False
+    envs: VectorEnv | None = None
 
     def save() -> None:
         save_checkpoint(checkpoint_path, {
@@ -242,7 +241,9 @@ def train(args: DAggerArgs) -> dict[str, Any]:
             "args": {k: v for k, v in asdict(args).items() if k not in ("config", "model")},
         })
 
-    try:
+    try:  # from the workers' start on, Ctrl-C saves and prints the --resume command
+        envs = make_envs(args, model.config)
+        data = Dataset(envs.single_observation_space.shape)
         while iteration < args.iterations:
             torch.set_num_threads(1)
             began = time.perf_counter()
@@ -271,7 +272,8 @@ def train(args: DAggerArgs) -> dict[str, Any]:
         bar.close()
         # After Ctrl-C the workers are ended, not waited for: a whole iteration's
         # collection is one call to them, and close() would wait for it to finish.
-        _close(envs, interrupted)
+        if envs is not None:
+            _close(envs, interrupted)
     export_model(model.eval(), out / POLICY_NAME, task=args.task, max_speed=max_speed)
     if metrics_path.exists():
         plot_curve(metrics_path, out / CURVE_NAME)
