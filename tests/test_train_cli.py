@@ -344,11 +344,11 @@ def _spawned_workers(pid: int) -> list[int]:
 
 
 def test_ctrl_c_during_a_dagger_collection_ends_the_workers_at_once(tmp_path):
-    """An iteration's collection is one call to the workers (tens of seconds here): Ctrl-C
-    in it ends them instead of waiting for it, and saves and exits 130 as ever."""
+    """An iteration's collection is one call to the workers (hours here): Ctrl-C in it ends
+    them instead of waiting for it, and saves and exits 130 as ever."""
     out = tmp_path / "run"
     args = ["train", "--task", "seek", "--out", str(out), "--no-progress",
-            "--steps-per-iteration", "40000"]
+            "--steps-per-iteration", "10000000"]
     proc = subprocess.Popen([JETBOT_TRAIN, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
@@ -361,15 +361,12 @@ def test_ctrl_c_during_a_dagger_collection_ends_the_workers_at_once(tmp_path):
         time.sleep(4)
         assert proc.poll() is None
         proc.send_signal(signal.SIGINT)
-        began = time.monotonic()
+        # a close() that waited for the collection would outlast this by hours
         _, stderr = proc.communicate(timeout=120)
-        took = time.monotonic() - began
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and "pending call" not in stderr, stderr
-    # the collection alone would take ~100 s of 2 cores; saving and exporting take a few
-    assert took < 60, f"Ctrl-C took {took:.0f} s"
     assert stderr.strip().splitlines()[-1].strip().endswith("--resume")
     assert (out / "policy.onnx").stat().st_size > 0

@@ -65,8 +65,8 @@ class Dataset:
 
     def add(self, frames: np.ndarray, labels: np.ndarray) -> None:
         if len(frames):
-            self.frames = np.concatenate([self.frames, np.stack(frames)])
-            self.labels = np.concatenate([self.labels, np.stack(labels)])
+            self.frames = np.concatenate([self.frames, frames])
+            self.labels = np.concatenate([self.labels, labels])
 
     def __len__(self) -> int:
         return len(self.labels)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -78,11 +77,6 @@ class Expert:
         forward *= max(math.cos(error), 0.0)
         left, right = forward - turn, forward + turn
         return np.clip(np.array([left, right], dtype=np.float32), -1.0, 1.0)
-
-    def act_batch(self, infos: dict[str, Any]) -> np.ndarray:
-        """Actions ``[N, 2]`` from a vector env's ``infos`` (``pose``, ``goal_xy``, ``speed``)."""
-        return np.stack([self.act(p, g, float(s)) for p, g, s in
-                         zip(infos["pose"], infos["goal_xy"], infos["speed"], strict=True)])
 
 
 def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek") -> float:
