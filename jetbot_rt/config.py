@@ -12,9 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 import shlex
-import stat
 import sys
 import typing
 from collections.abc import Callable
@@ -27,6 +25,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10 (JetPack 6) path
     import tomli as tomllib
 
+from jetbot_rt import safe_file
 from jetbot_rt.errors import UsageError
 
 MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")
@@ -531,42 +530,9 @@ MAX_CONFIG_BYTES = 256 * 1024
 
 
 def read_config_text(path: Path) -> str:
-    """The text of a config file, read in bounded time and memory, or ``UsageError``.
-
-    Only a regular file is read (a FIFO, a device such as /dev/zero or a directory is
-    refused without blocking: it is opened non-blocking and checked with ``fstat``), at most
-    ``MAX_CONFIG_BYTES``, and it must be UTF-8; a leading byte-order mark is accepted.
-    """
-    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
-    try:
-        fd = os.open(path, flags)
-    except OSError as exc:
-        raise UsageError(f"cannot read config {path}: {exc.strerror or exc}") from None
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
-            raise UsageError(f"cannot read config {path}: {kind}")
-        data = b""
-        while len(data) <= MAX_CONFIG_BYTES:
-            chunk = os.read(fd, MAX_CONFIG_BYTES + 1 - len(data))
-            if not chunk:
-                break
-            data += chunk
-    except OSError as exc:
-        raise UsageError(f"cannot read config {path}: {exc.strerror or exc}") from None
-    finally:
-        os.close(fd)
-    if len(data) > MAX_CONFIG_BYTES:
-        raise UsageError(f"config {path} is larger than {MAX_CONFIG_BYTES // 1024} KiB")
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise UsageError(
-            f"config {path} is not UTF-8: byte 0x{data[exc.start]:02x} at line {line}"
-        ) from None
-    return text[1:] if text.startswith("\ufeff") else text
+    """The text of a config file in bounded time and memory (``safe_file``: regular file only,
+    never blocking, at most ``MAX_CONFIG_BYTES``, UTF-8), or ``UsageError``."""
+    return safe_file.read_text(path, "config", MAX_CONFIG_BYTES)
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
