@@ -7,6 +7,7 @@ metadata get the rl_games/Isaac Lab defaults: NHWC, RGB, float32, values 0..255.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,8 +16,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from jetbot_rt import safe_file
 from jetbot_rt.config import LAYOUTS, Config, PolicyConfig
 from jetbot_rt.errors import Fault, UsageError, first_line
+from jetbot_rt.safe_file import shown
 
 META_PREFIX = "jetbot_rt."
 PROVIDER_PREFERENCE = (
@@ -50,19 +53,26 @@ def provider_options(providers: list[str]) -> list[str | tuple[str, dict[str, st
     return result
 
 
-def shown(path: str | Path) -> str:
-    """A path as messages show it: a byte that is not UTF-8 as ``\\xNN``, never a lone
-    surrogate that a strict stream cannot print."""
-    return os.fsencode(path).decode("utf-8", "backslashreplace")
+MAX_MODEL_BYTES = 2 * 1024**3 - 1
+"""protobuf's own limit: no ONNX file (without external data) is larger."""
+MAX_INPUT_SIDE = 4096
+"""The largest input width or height a policy may declare. The largest sensor a JetBot
+carries (IMX219) gives 3280x2464; every frame of the policy's size is allocated several
+times over (the camera pipe's W*H*3 bytes, a float32 tensor four times that, ``[record]
+queue_frames`` slots of shared memory), so a declared 20000x20000 (1.2 GB per frame, 4.8 GB as
+float) or 2**31 would end in a failed allocation while starting, a fault, not a refusal."""
 
 
 def _model_source(path: Path) -> str | bytes:
     """What onnxruntime is given: the path, or the file's bytes where the path is not UTF-8
-    (onnxruntime accepts only UTF-8 paths and says "incompatible constructor arguments")."""
+    (onnxruntime accepts only UTF-8 paths and says "incompatible constructor arguments").
+    Either way the file is first opened as ``safe_file`` does: a FIFO or a device is refused
+    without blocking."""
+    os.close(safe_file.open_regular(path, "policy"))
     try:
         str(path).encode("utf-8")
     except UnicodeEncodeError:
-        return path.read_bytes()
+        return safe_file.read_bytes(path, "policy", MAX_MODEL_BYTES)
     return str(path)
 
 
@@ -123,6 +133,22 @@ def _infer_layout(shape: list[Any]) -> str | None:
     return None
 
 
+def _check_max_speed(path: str, metadata: dict[str, str]) -> None:
+    """``jetbot_rt.max_speed``, when the model states one, is a number in (0, 1]: what our
+    exporter writes. Anything else is a broken export, refused rather than replaced by the
+    default without a word."""
+    stated = metadata.get(META_PREFIX + "max_speed")
+    if stated is None:
+        return
+    try:
+        value = float(stated)
+    except ValueError:
+        value = math.nan
+    if not 0.0 < value <= 1.0:  # NaN fails too
+        raise UsageError(f"policy {path}: its metadata {META_PREFIX}max_speed = {stated[:40]!r} "
+                         "is not a number in (0, 1] (fix the export)")
+
+
 class OnnxPolicy:
     """``infer(image)`` maps one HxWx3 uint8 RGB frame to ``mu``: two floats, ``[left, right]``."""
 
@@ -136,10 +162,9 @@ class OnnxPolicy:
 
     @property
     def max_speed(self) -> float | None:
-        try:
-            return float(self.metadata[META_PREFIX + "max_speed"])
-        except (KeyError, ValueError):
-            return None
+        """The model's ``max_speed`` metadata (checked by ``load``), or None."""
+        stated = self.metadata.get(META_PREFIX + "max_speed")
+        return None if stated is None else float(stated)
 
     @property
     def providers(self) -> list[str]:
@@ -154,8 +179,9 @@ class OnnxPolicy:
 
         config = config or PolicyConfig()
         path = Path(path)
-        if not path.is_file():
+        if not os.path.lexists(path):
             raise UsageError(f"policy {shown(path)}: no such file")
+        source = _model_source(path)
         available = ort.get_available_providers()
         wanted = config.providers or list(PROVIDER_PREFERENCE)
         providers = [p for p in wanted if p in available] or ["CPUExecutionProvider"]
@@ -171,15 +197,20 @@ class OnnxPolicy:
         options.inter_op_num_threads = threads
         try:
             session = ort.InferenceSession(
-                _model_source(path), options, providers=provider_options(providers)
+                source, options, providers=provider_options(providers)
             )
         except Exception as exc:  # onnxruntime raises several unrelated types for bad files
             raise UsageError(
                 f"policy {shown(path)}: not a loadable ONNX model ({first_line(exc)})"
             ) from None
-        metadata = dict(session.get_modelmeta().custom_metadata_map)
-        spec = cls._input_spec(session, shown(path), config, metadata)
-        action_output = cls._action_output(session, shown(path))
+        try:  # onnxruntime hands text over as UTF-8, which the file need not be
+            metadata = dict(session.get_modelmeta().custom_metadata_map)
+            spec = cls._input_spec(session, shown(path), config, metadata)
+            action_output = cls._action_output(session, shown(path))
+        except UnicodeDecodeError:
+            raise UsageError(f"policy {shown(path)}: its metadata or input and output names "
+                             "are not UTF-8 text") from None
+        _check_max_speed(shown(path), metadata)
         return cls(session, spec, action_output, path, metadata)
 
     @staticmethod
@@ -224,6 +255,9 @@ class OnnxPolicy:
             )
         if _dim(height) is None or _dim(width) is None:
             raise UsageError(f"policy {path}: input {model_input.name} has no fixed size: {shape}")
+        if max(width, height) > MAX_INPUT_SIDE:
+            raise UsageError(f"policy {path}: input {model_input.name} is {width}x{height}; "
+                             f"the runtime takes at most {MAX_INPUT_SIDE} pixels a side")
         declared = metadata.get(META_PREFIX + "input_size")
         if declared is not None and declared != f"{width}x{height}":
             raise UsageError(f"policy {path}: metadata says input size {declared}, "

@@ -6,7 +6,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from jetbot_rt.config import PolicyConfig
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.policy import OnnxPolicy, provider_options
+from jetbot_rt.policy import MAX_INPUT_SIDE, OnnxPolicy, provider_options
 
 RED = np.zeros((224, 224, 3), np.uint8)
 RED[..., 0] = 255
@@ -266,3 +266,109 @@ class TestClip:
         assert OnnxPolicy.load(tmp_path / "u8.onnx").infer(RED[:8, :8]).tolist() == [255.0, 0.0]
         clipped = OnnxPolicy.load(channel_probe(tmp_path / "f.onnx"), PolicyConfig(clip=5.0))
         assert clipped.infer(RED).tolist() == [5.0, 0.0]
+
+
+def sized_probe(path, width, height, metadata=None):
+    """An NHWC float model of input ``width`` x ``height`` (nothing is allocated at load)."""
+    graph = helper.make_graph(
+        [helper.make_node("ReduceMean", ["obs"], ["means"], axes=[1, 2], keepdims=0),
+         helper.make_node("Gather", ["means", "pick"], ["mu"], axis=1)],
+        "sized", [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [1, height, width, 3])],
+        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])],
+        [numpy_helper.from_array(np.array([0, 2], np.int64), "pick")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
+    model.ir_version = 8
+    for key, value in (metadata or {}).items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(model, str(path))
+    return path
+
+
+class TestUntrustedModels:
+    """A model file is input like any other: what it declares is checked at load, and every
+    defect is a ``UsageError`` (exit 2), never a fault once driving (exit 3)."""
+
+    @pytest.mark.parametrize(("width", "height"), [(4097, 8), (8, 4097), (20000, 20000),
+                                                   (2**31, 2**31)])
+    def test_an_input_larger_than_the_cap_is_refused_at_load(self, tmp_path, width, height):
+        path = sized_probe(tmp_path / "big.onnx", width, height)
+        with pytest.raises(UsageError) as info:
+            OnnxPolicy.load(path)
+        assert str(info.value) == (f"policy {path}: input obs is {width}x{height}; the runtime "
+                                   f"takes at most {MAX_INPUT_SIDE} pixels a side")
+
+    def test_the_cap_itself_loads(self, tmp_path):
+        assert MAX_INPUT_SIDE == 4096
+        spec = OnnxPolicy.load(sized_probe(tmp_path / "cap.onnx", 4096, 4096)).spec
+        assert (spec.width, spec.height) == (4096, 4096)
+
+    def test_jetbot_rt_run_refuses_an_absurd_input_size_with_exit_2(self, tmp_path):
+        import subprocess
+
+        from runner import JETBOT_RT
+
+        path = sized_probe(tmp_path / "big.onnx", 20000, 20000)
+        proc = subprocess.run([JETBOT_RT, "run", "--backend", "sim", "--duration", "1",
+                               "--policy", str(path)], capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2, proc.stderr
+        assert proc.stderr.count("\n") == 1 and "at most 4096 pixels a side" in proc.stderr
+
+    @pytest.mark.parametrize("stated", ["nan", "inf", "0", "-0.1", "1.0000001", "fast", ""])
+    def test_a_max_speed_that_is_not_in_0_1_is_refused(self, tmp_path, stated):
+        path = channel_probe(tmp_path / "p.onnx", metadata={"jetbot_rt.max_speed": stated})
+        with pytest.raises(UsageError) as info:
+            OnnxPolicy.load(path)
+        assert str(info.value) == (f"policy {path}: its metadata jetbot_rt.max_speed = "
+                                   f"{stated!r} is not a number in (0, 1] (fix the export)")
+
+    @pytest.mark.parametrize(("stated", "value"), [("1", 1.0), ("1e-3", 0.001), (None, None)])
+    def test_a_max_speed_in_0_1_is_the_models(self, tmp_path, stated, value):
+        metadata = {} if stated is None else {"jetbot_rt.max_speed": stated}
+        path = channel_probe(tmp_path / "p.onnx", metadata=metadata)
+        assert OnnxPolicy.load(path).max_speed == value
+
+    def test_metadata_that_is_not_utf8_is_refused(self, tmp_path):
+        path = channel_probe(tmp_path / "p.onnx", metadata={"jetbot_rt.task": "QQQQ"})
+        path.write_bytes(path.read_bytes().replace(b"QQQQ", b"\xff\xfe\x80Q"))
+        with pytest.raises(UsageError, match="metadata or input and output names are not UTF-8"):
+            OnnxPolicy.load(path)
+
+    @pytest.mark.parametrize("kind", ["fifo", "dev-zero", "directory"])
+    def test_a_path_that_is_not_a_regular_file_is_refused_without_blocking(self, tmp_path,
+                                                                           kind):
+        import os
+        import threading
+
+        path = tmp_path / "p.onnx"
+        if kind == "fifo":
+            os.mkfifo(path)
+        elif kind == "dev-zero":
+            path.symlink_to("/dev/zero")
+        else:
+            path.mkdir()
+        errors = []
+
+        def load():
+            try:
+                OnnxPolicy.load(path)
+            except UsageError as exc:
+                errors.append(str(exc))
+
+        worker = threading.Thread(target=load, daemon=True)
+        worker.start()
+        worker.join(20)
+        assert not worker.is_alive(), "load blocked"
+        expected = "a directory" if kind == "directory" else "not a regular file"
+        assert errors == [f"cannot read policy {path}: {expected}"]
+
+    def test_a_path_that_is_not_utf8_still_loads(self, tmp_path):
+        import os
+
+        source = channel_probe(tmp_path / "p.onnx")
+        name = os.path.join(os.fsencode(tmp_path), b"\xff.onnx")
+        os.rename(source, name)
+        policy = OnnxPolicy.load(os.fsdecode(name))
+        assert policy.infer(RED).tolist() == [255.0, 0.0]
+        assert policy.describe()["path"].endswith("\\xff.onnx")
