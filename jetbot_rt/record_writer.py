@@ -1,4 +1,4 @@
-"""The recorder's writer process (``python -m jetbot_rt.record_writer CONFIG_JSON``).
+"""The recorder's writer process (``recorder.writer_command``: ``main`` with CONFIG_JSON).
 
 A process of its own, at the lowest CPU priority, so that encoding never holds the control
 loop's interpreter lock, nor its core. The runtime passes frames through a shared memory

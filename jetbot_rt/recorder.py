@@ -6,8 +6,9 @@ events), ``frames.mkv`` (the frames as the policy received them, HuffYUV: lossle
 reproduces ``mu`` to round-off) and, once the run ends, ``summary.json``.
 
 Encoding and writing happen in a writer process at the lowest CPU priority
-(``jetbot_rt.record_writer``): a thread would share the control thread's interpreter lock,
-and a preempted low-priority thread holding it stalls the tick (measured: ``bench_record.py``).
+(``jetbot_rt.record_writer``, started by ``writer_command``): a thread would share the control
+thread's interpreter lock, and a preempted low-priority thread holding it stalls the tick
+(measured: ``bench_record.py``).
 The control thread only copies the frame into a free slot of shared memory and writes one
 line to a non-blocking pipe (``observe``). No free slot (``queue_frames`` frames wait for the
 disk) or a full pipe: the frame or record is dropped and counted, never the tick. A write
@@ -36,6 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from jetbot_rt import safe_file
 from jetbot_rt.errors import UsageError
 from jetbot_rt.loop import TickResult
 from jetbot_rt.record_writer import (
@@ -60,9 +62,26 @@ CLOSE_TIMEOUT = 2.0
 """Seconds ``close`` waits for the writer; after that the run ends without it."""
 
 
+WRITER_BOOTSTRAP = ("import sys; sys.path[:] = [p for p in sys.path if p]; "
+                    "from jetbot_rt.record_writer import main; sys.exit(main())")
+"""The writer's ``-c`` program. ``python -m`` (or ``-c``) puts the working directory first on
+``sys.path``: a ``jetbot_rt/`` (or ``json.py``...) planted in a shared directory would run as
+the operator (root for the service) when someone records from there. Its first statement drops
+that entry (``''``, which Python adds after ``site`` ran, so nothing was imported through it
+yet), before any import. ``-P``/``PYTHONSAFEPATH`` would do the same but need Python 3.11; ``-I``
+would also drop ``PYTHONPATH`` and the user's site-packages, where jetbot_rt may be installed.
+The child also starts in ``/``, and is given absolute paths only."""
+
+
+def writer_command(config_json: str) -> list[str]:
+    """The writer process's command line (``jetbot_rt.record_writer.main``)."""
+    return [sys.executable, "-c", WRITER_BOOTSTRAP, config_json]
+
+
 def sha256_of(path: str | Path) -> str:
+    """The file's SHA-256, read through ``safe_file`` (a regular file; never blocks)."""
     digest = hashlib.sha256()
-    with open(path, "rb") as file:
+    with os.fdopen(safe_file.open_regular(path, "file"), "rb") as file:
         for block in iter(lambda: file.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
@@ -140,11 +159,11 @@ class Recorder:
             os.ftruncate(memory, HEADER_BYTES + queue_frames * width * height * 3)
             self._mm = mmap.mmap(memory, 0)
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "jetbot_rt.record_writer", json.dumps({
-                    "path": str(self.path), "frame_size": [width, height], "rate_hz": rate_hz,
-                    "slots": queue_frames, "min_free_mb": min_free_mb, "codec": codec,
-                    "fd": memory})],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, pass_fds=(memory,),
+                writer_command(json.dumps({
+                    "path": os.path.abspath(self.path), "frame_size": [width, height],
+                    "rate_hz": rate_hz, "slots": queue_frames, "min_free_mb": min_free_mb,
+                    "codec": codec, "fd": memory})),
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, pass_fds=(memory,), cwd="/",
             )
         finally:
             os.close(memory)

@@ -34,6 +34,18 @@ if TYPE_CHECKING:
     from jetbot_rt.config import CameraConfig
 
 GST_LAUNCH = "gst-launch-1.0"
+
+
+def gst_launch_path() -> str:
+    """``gst-launch-1.0`` in PATH's absolute directories only: an empty or relative entry
+    (``PATH=/usr/bin:``, a common slip) would run a program of that name planted in the
+    working directory."""
+    for directory in os.environ.get("PATH", os.defpath).split(os.pathsep):
+        candidate = os.path.join(directory, GST_LAUNCH)
+        if os.path.isabs(directory) and os.path.isfile(candidate) and os.access(candidate,
+                                                                                os.X_OK):
+            return candidate
+    raise FileNotFoundError(GST_LAUNCH)
 ARGUS_HINT = "for the CSI camera try: sudo systemctl restart nvargus-daemon"
 NO_ARGUS = 'no element "nvarguscamerasrc"'
 NO_ARGUS_HINT = (
@@ -122,7 +134,7 @@ class GstCamera(Camera):
     def start(self) -> None:
         try:
             self._process = subprocess.Popen(
-                [GST_LAUNCH, "-q", *shlex.split(self.pipeline)],
+                [gst_launch_path(), "-q", *shlex.split(self.pipeline)],
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
