@@ -8,8 +8,13 @@ not for keeping a second one out (that is the motor bus's owner lock, ``hal/owne
 stop defeats a runtime it cannot reach (``stop.py``).
 
 Protocol: one line per connection. ``stop`` -> ``ok`` (after ``on_stop`` has run), ``ping``
--> ``pong``. The socket is mode 0600 in a directory of mode 0700, so only the runtime's user
-(and root) can stop it this way.
+-> ``pong``. The socket is mode 0600 in a directory of mode 0700 (``runtime_dir.py``: which
+directory, and why a directory another user made first is never used), and the server answers
+only its own user and root (``SO_PEERCRED``).
+
+``request_stop`` asks every socket it trusts at once, non-blocking, within one deadline
+(``ASK_TOTAL_S`` in all, however many sockets and whatever they do), and names what it did not
+trust: another user's directory or socket, a link.
 
 One thread serves every connection through a selector, never blocking on any one client: a
 client that connects and says nothing, or sends half a line, or never reads the answer,
@@ -20,7 +25,6 @@ delays nobody else's ``stop``. Such a client is dropped after ``CLIENT_TIMEOUT_S
 from __future__ import annotations
 
 import contextlib
-import fnmatch
 import os
 import selectors
 import socket
@@ -32,30 +36,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
+from jetbot_rt.runtime_dir import SERVICE_DIR, default_dir, private_dir, search
+
+__all__ = ["SERVICE_DIR", "ControlServer", "StopReply", "default_socket_dir",
+           "default_socket_path", "request_stop"]
 
 SOCKET_GLOB = "control*.sock"
-# The systemd unit's RuntimeDirectory=jetbot-rt: where the service's socket is, seen from a
-# shell that has no $RUNTIME_DIRECTORY.
-SERVICE_DIR = Path("/run/jetbot-rt")
 _MAX_REQUEST = 64
 CLIENT_TIMEOUT_S = 1.0
 """A connection that has not sent its line within this time is closed."""
 MAX_CLIENTS = 16
+ASK_TOTAL_S = 1.0
+"""``request_stop``'s whole wait, all sockets together: connecting, sending, the answers."""
+MAX_ASKED = 64
+"""Sockets asked at most; more are ignored and named (each is a file descriptor)."""
+_RETRY_CONNECT_S = 0.005
 
 
 def default_socket_dir() -> Path:
-    """$JETBOT_RT_RUNTIME_DIR, else $RUNTIME_DIRECTORY (systemd), else
-    $XDG_RUNTIME_DIR/jetbot-rt, else /tmp/jetbot-rt-<uid>."""
-    explicit = os.environ.get("JETBOT_RT_RUNTIME_DIR")
-    if explicit:
-        return Path(explicit)
-    systemd = os.environ.get("RUNTIME_DIRECTORY")
-    if systemd:
-        return Path(systemd.split(":")[0])  # systemd joins several with ':'
-    xdg = os.environ.get("XDG_RUNTIME_DIR")
-    if xdg:
-        return Path(xdg) / "jetbot-rt"
-    return Path(f"/tmp/jetbot-rt-{os.getuid()}")
+    """``runtime_dir.default_dir()``: $JETBOT_RT_RUNTIME_DIR, else $RUNTIME_DIRECTORY
+    (systemd), else $XDG_RUNTIME_DIR/jetbot-rt, else /run/jetbot-rt for root and
+    /tmp/jetbot-rt-<uid> for everyone else."""
+    return default_dir()
 
 
 def default_socket_path() -> Path:
@@ -78,9 +80,11 @@ def _remove_dead_sockets(directory: Path) -> None:
             pass  # alive, another user's
 
 
-def _peer_pid(conn: socket.socket) -> int:
+def _peer(conn: socket.socket) -> tuple[int, int]:
+    """The pid and uid of the process at the other end."""
     creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    return struct.unpack("3i", creds)[0]
+    pid, uid, _gid = struct.unpack("3i", creds)
+    return pid, uid
 
 
 def runtime_answers(path: Path) -> bool:
@@ -93,12 +97,6 @@ def runtime_answers(path: Path) -> bool:
     finally:
         probe.close()
     return True
-
-
-def _private_dir(directory: Path) -> None:
-    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-    if directory.stat().st_uid != os.getuid():
-        raise UsageError(f"control socket directory {directory} belongs to another user")
 
 
 class ControlServer:
@@ -123,7 +121,8 @@ class ControlServer:
             ) from None
 
     def _start(self) -> None:
-        _private_dir(self.path.parent)
+        # the /tmp fallback held by another user gives way to a private directory
+        self.path = private_dir(self.path.parent) / self.path.name
         _remove_dead_sockets(self.path.parent)
         if self.path.exists() or self.path.is_symlink():
             if runtime_answers(self.path):
@@ -237,9 +236,12 @@ class ControlServer:
 
     def _answer(self, conn: socket.socket, data: bytes) -> None:
         request = data.decode(errors="replace").strip()
-        if request == "stop":
+        pid, uid = _peer(conn)
+        if uid not in (os.geteuid(), 0):  # the socket's mode already says so; twice is cheap
+            reply = "error not allowed"
+        elif request == "stop":
             try:
-                self.on_stop(f"jetbot-rt stop from pid {_peer_pid(conn)}")
+                self.on_stop(f"jetbot-rt stop from pid {pid}")
                 reply = "ok"
             except Exception as exc:
                 reply = f"error {type(exc).__name__}: {exc}"
@@ -252,81 +254,113 @@ class ControlServer:
         conn.send(reply.encode() + b"\n")
 
 
-def _candidates(path: Path | None) -> tuple[list[Path], list[str]]:
-    """The sockets to ask, and the directories that could not be listed."""
-    if path is not None:
-        return [Path(path)], []
-    directories = [default_socket_dir()]
-    explicit = os.environ.get("JETBOT_RT_RUNTIME_DIR") or os.environ.get("RUNTIME_DIRECTORY")
-    if not explicit and SERVICE_DIR not in directories:
-        directories.append(SERVICE_DIR)
-    paths: list[Path] = []
-    problems: list[str] = []
-    for directory in directories:
-        try:
-            names = sorted(os.listdir(directory))
-        except FileNotFoundError:
-            continue
-        except OSError as exc:  # the service's directory, seen by another user
-            problems.append(f"{directory}: {exc.strerror or exc}")
-            continue
-        paths += [directory / n for n in names if fnmatch.fnmatch(n, SOCKET_GLOB)]
-    return paths, problems
-
-
 @dataclass
 class StopReply:
-    """What ``request_stop`` found: runtimes that latched, and sockets it could not reach
-    (a live runtime behind a permission error keeps driving, which the caller must say)."""
+    """What ``request_stop`` found: runtimes that latched, sockets it could not reach (a live
+    runtime behind a permission error keeps driving, which the caller must say), and what it
+    did not trust (never asked)."""
 
     acknowledged: list[Path] = field(default_factory=list)
     unreachable: list[str] = field(default_factory=list)
+    ignored: list[str] = field(default_factory=list)
 
     def __bool__(self) -> bool:
         return bool(self.acknowledged)
 
 
-def _connect(client: socket.socket, path: Path, timeout: float) -> None:
-    """Connect, retrying while the listen queue is full (EAGAIN: a UNIX socket does not wait
-    for room, even with a timeout): a flood of other clients must not turn a stop away."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            client.connect(str(path))
-            return
-        except BlockingIOError:
-            if time.monotonic() >= deadline:
-                raise
-            time.sleep(0.005)
+class _Ask:
+    """One socket being asked: connected, ``stop`` sent, its answer arriving."""
+
+    def __init__(self, path: Path, sock: socket.socket) -> None:
+        self.path = path
+        self.sock = sock
+        self.answer = b""
 
 
-def request_stop(path: Path | None = None, timeout: float = 0.5) -> StopReply:
-    """Ask a running runtime to latch its safe stop.
+def _connect(path: Path) -> _Ask | str | None:
+    """A connected socket with ``stop`` sent; None for a stale socket (nobody listens), ""
+    for a full listen queue (try again: a UNIX socket does not wait for room), else why
+    not. Never blocks."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.setblocking(False)
+    try:
+        sock.connect(str(path))
+        _pid, uid = _peer(sock)
+        if uid not in (os.geteuid(), 0, os.lstat(path).st_uid):
+            sock.close()
+            return f"served by uid {uid}"
+        sock.send(b"stop\n")
+    except BlockingIOError:
+        sock.close()
+        return ""
+    except (ConnectionRefusedError, FileNotFoundError):
+        sock.close()
+        return None  # stale socket of a runtime that is gone
+    except OSError as exc:
+        sock.close()
+        return exc.strerror or str(exc)
+    return _Ask(path, sock)
 
-    Without ``path``, tries every socket in the default directory, then (unless a runtime
-    directory is set in the environment) in the systemd service's. A socket file nobody
-    listens on (a runtime that died) is neither acknowledged nor unreachable.
+
+def _receive(ask: _Ask) -> bool:
+    """Read what has arrived; True once the answer is complete (a line, or the end)."""
+    try:
+        chunk = ask.sock.recv(_MAX_REQUEST)
+    except (BlockingIOError, InterruptedError):
+        return False
+    except OSError:
+        chunk = b""
+    ask.answer += chunk
+    return not chunk or b"\n" in ask.answer or len(ask.answer) >= _MAX_REQUEST
+
+
+def request_stop(path: Path | None = None, timeout: float = ASK_TOTAL_S) -> StopReply:
+    """Ask running runtimes to latch their safe stop, all at once, for at most ``timeout``
+    seconds in all.
+
+    Without ``path``, every socket ``runtime_dir.search`` trusts in the runtime directories
+    (at most ``MAX_ASKED``). A socket file nobody listens on (a runtime that died) is neither
+    acknowledged nor unreachable.
     """
-    candidates, problems = _candidates(path)
-    reply = StopReply(unreachable=problems)
-    for candidate in candidates:
-        if not candidate.exists():
-            continue
-        client = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        client.settimeout(timeout)
-        try:
-            _connect(client, candidate, timeout)
-            client.sendall(b"stop\n")
-            answer = client.recv(_MAX_REQUEST)
-        except (ConnectionRefusedError, FileNotFoundError):
-            continue  # stale socket of a runtime that is gone
-        except OSError as exc:
-            reply.unreachable.append(f"{candidate}: {exc.strerror or exc}")
-            continue
-        finally:
-            client.close()
-        if answer.strip() == b"ok":
-            reply.acknowledged.append(candidate)
-        else:
-            reply.unreachable.append(f"{candidate}: unexpected answer {answer[:40]!r}")
+    deadline = time.monotonic() + timeout
+    if path is not None:
+        candidates, reply = [Path(path)], StopReply()
+    else:
+        found = search(SOCKET_GLOB, MAX_ASKED)
+        candidates = found.sockets
+        reply = StopReply(unreachable=list(found.problems), ignored=list(found.ignored))
+    selector = selectors.DefaultSelector()
+    to_connect = candidates
+    try:
+        while to_connect or selector.get_map():
+            retry = []
+            for candidate in to_connect:
+                outcome = _connect(candidate)
+                if isinstance(outcome, _Ask):
+                    selector.register(outcome.sock, selectors.EVENT_READ, outcome)
+                elif outcome == "":
+                    retry.append(candidate)
+                elif outcome is not None:
+                    reply.unreachable.append(f"{candidate}: {outcome}")
+            to_connect = retry
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            wait = min(left, _RETRY_CONNECT_S) if to_connect else left
+            for key, _events in selector.select(wait):
+                ask = key.data
+                if _receive(ask):
+                    selector.unregister(ask.sock)
+                    ask.sock.close()
+                    if ask.answer.strip() == b"ok":
+                        reply.acknowledged.append(ask.path)
+                    else:
+                        reply.unreachable.append(
+                            f"{ask.path}: unexpected answer {ask.answer[:40]!r}")
+    finally:
+        for key in list(selector.get_map().values()):
+            key.data.sock.close()
+            reply.unreachable.append(f"{key.data.path}: no answer within {timeout:g} s")
+        selector.close()
+    reply.unreachable += [f"{c}: its listen queue stayed full" for c in to_connect]
     return reply

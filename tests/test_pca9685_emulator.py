@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-import json
+import errno
+import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -12,7 +14,8 @@ import pytest
 from smbus2 import i2c_msg
 
 from jetbot_rt.hal.pca9685 import ALL_LED_OFF_H, ALL_LED_ON_L, LED0_ON_L, MODE1, PRE_SCALE
-from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing import pca9685_emulator
+from jetbot_rt.testing.pca9685_emulator import STATE, PCA9685Emulator
 
 ADDR = 0x60
 
@@ -139,7 +142,8 @@ def test_two_instances_share_one_chip_through_the_state_file(tmp_path) -> None:
 WRITER = """
 import sys
 from smbus2 import i2c_msg
-from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
+from jetbot_rt.testing import pca9685_emulator
+from jetbot_rt.testing.pca9685_emulator import STATE, PCA9685Emulator
 chip = PCA9685Emulator(0x60, state_file=sys.argv[1])
 chip.i2c_rdwr(i2c_msg.write(0x60, bytes((0x00, 0x20))))
 print("ready", flush=True)
@@ -159,8 +163,87 @@ def test_state_file_survives_sigkill_of_a_writer(tmp_path) -> None:
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-    json.loads(state.read_text())  # whole, not half-written
-    chip = PCA9685Emulator(ADDR, state_file=state)  # the lock was released by the kernel
+    assert state.stat().st_size == STATE.size
+    chip = PCA9685Emulator(ADDR, state_file=state)  # whole, and the kernel released the lock
     write(chip, LED0_ON_L, 0x00, 0x00, 0x00, 0x10)
     assert chip.refresh().channel(0).full_off
     assert chip.transactions > 10
+
+
+# ---- the state file: updated in place, never rewritten (issue 25) -------------------------
+
+
+def test_a_transaction_updates_the_state_file_in_place(tmp_path) -> None:
+    """No new file, no rename per write (those stalled ticks for 75-150 ms): the same inode,
+    owner and mode after a thousand transactions, and nothing else in the directory but the
+    owner lock's file."""
+    state = tmp_path / "chip.json"
+    chip = PCA9685Emulator(ADDR, state_file=state)
+    os.chmod(state, 0o640)
+    before = state.stat()
+    write(chip, MODE1, 0x20)
+    for n in range(1000):
+        write(chip, LED0_ON_L, 0x00, 0x00, n & 0xFF, (n >> 8) & 0x0F)
+    after = state.stat()
+    assert (after.st_ino, after.st_uid, after.st_gid, stat.S_IMODE(after.st_mode)) == \
+        (before.st_ino, before.st_uid, before.st_gid, 0o640)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["chip.json"]
+    assert PCA9685Emulator(state_file=state).transactions == 1001
+
+
+@pytest.mark.parametrize("kind", ["symlink", "fifo", "directory", "short", "json", "version"])
+def test_a_state_file_that_is_not_one_is_refused(tmp_path, kind: str) -> None:
+    state = tmp_path / "chip.json"
+    real = tmp_path / "real.json"
+    if kind == "symlink":
+        PCA9685Emulator(ADDR, state_file=real)
+        state.symlink_to(real)
+    elif kind == "fifo":
+        os.mkfifo(state)
+    elif kind == "directory":
+        state.mkdir()
+    elif kind == "short":
+        state.write_bytes(b"PCA9685E")
+    elif kind == "json":  # the format before issue 25
+        state.write_text('{"address": 96, "registers": []}')
+    else:
+        PCA9685Emulator(ADDR, state_file=state)
+        with open(state, "r+b") as out:
+            out.seek(8)
+            out.write(b"\x07")
+    with pytest.raises(OSError) as refused:
+        PCA9685Emulator(ADDR, state_file=state)
+    assert refused.value.errno in (errno.ELOOP, errno.EINVAL, errno.EISDIR), refused.value
+    if kind == "symlink":
+        assert PCA9685Emulator(state_file=real).sleeping  # what the link named is untouched
+
+
+def test_a_lock_held_by_a_stopped_process_fails_the_transaction_not_the_caller(
+        tmp_path, monkeypatch) -> None:
+    """A writer stopped mid-transaction (SIGSTOP) keeps the lock: a transaction gives up
+    after ``LOCK_WAIT_S`` with the error a bus that does not answer gives, then works again
+    once the lock is free."""
+    import fcntl
+
+    monkeypatch.setattr(pca9685_emulator, "LOCK_WAIT_S", 0.2)
+    state = tmp_path / "chip.json"
+    chip = PCA9685Emulator(ADDR, state_file=state)
+    holder = os.open(state, os.O_RDONLY)
+    try:
+        fcntl.flock(holder, fcntl.LOCK_EX)
+        with pytest.raises(OSError) as stalled:
+            write(chip, MODE1, 0x20)
+        assert stalled.value.errno == errno.ETIMEDOUT
+    finally:
+        os.close(holder)
+    write(chip, MODE1, 0x20)
+    assert chip.refresh().registers[MODE1] == 0x20
+
+
+def test_a_closed_emulator_opens_its_file_again(tmp_path) -> None:
+    chip = PCA9685Emulator(ADDR, state_file=tmp_path / "chip.json")
+    chip.close()
+    write(chip, MODE1, 0x20)
+    chip.close()
+    chip.close()
+    assert chip.refresh().registers[MODE1] == 0x20

@@ -15,7 +15,7 @@ import pytest
 
 from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.i2c import I2CBus
-from jetbot_rt.hal.motors import WaveshareDrive
+from jetbot_rt.hal.motors import BoardAsleep, WaveshareDrive
 from jetbot_rt.stop_socket import ControlServer, default_socket_path, request_stop
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
@@ -102,7 +102,9 @@ def test_default_socket_path_precedence(monkeypatch) -> None:
     for name in ("JETBOT_RT_RUNTIME_DIR", "RUNTIME_DIRECTORY", "XDG_RUNTIME_DIR"):
         monkeypatch.delenv(name, raising=False)
     mine = f"control-{os.getpid()}.sock"
-    assert default_socket_path() == Path(f"/tmp/jetbot-rt-{os.getuid()}") / mine
+    # root never falls back to /tmp, where another user can create the name first
+    fallback = Path("/run/jetbot-rt") if os.getuid() == 0 else Path(f"/tmp/jetbot-rt-{os.getuid()}")
+    assert default_socket_path() == fallback / mine
     monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/7")
     assert default_socket_path() == Path("/run/user/7/jetbot-rt") / mine
     monkeypatch.setenv("RUNTIME_DIRECTORY", "/run/jetbot-rt:/run/other")
@@ -202,7 +204,8 @@ def test_stop_reports_a_runtime_it_could_not_reach(tmp_path) -> None:
         silent.close()
     # The board is off and asleep and nobody owns the bus: confirmed; the socket is a note.
     assert result.returncode == 0, result.stderr
-    assert "note: could not ask a runtime to stop" in result.stderr
+    assert "note: could not ask 1 runtime socket(s) to stop" in result.stderr
+    assert "no answer within 1 s" in result.stderr
     assert chip.refresh().all_off() and chip.sleeping
 
 
@@ -263,20 +266,26 @@ class TestStopNeverReportsAnOffItCouldNotWrite:
         assert not chip.refresh().all_off()  # true: it could not be written
 
 
-class TestARuntimesLastTickAfterTheFirstStop:
-    """A runtime's tick can land between ``stop``'s first write and the moment that runtime
-    latches: the stop that follows the runtime's acknowledgement must clear it."""
+class TestARuntimesLastTickAfterTheStop:
+    """``stop`` puts the chip to sleep before it asks anyone: a runtime's tick in flight while
+    it is asked (its write lands after the stop) changes registers only, never an output, and
+    finds the chip asleep (a fault for that runtime: it stops)."""
 
-    def test_a_write_made_while_acknowledging_is_cleared(self, tmp_path: Path) -> None:
+    def test_a_write_made_while_acknowledging_drives_nothing(self, tmp_path: Path) -> None:
         chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
         drive = WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0)
         drive.write(0.6, 0.6)
-        late_writes: list[bool] = []
+        seen: list[tuple[str, bool, bool]] = []
 
         def last_tick_then_latch(_reason: str) -> None:
-            drive.write(0.4, -0.4)  # the tick in flight lands after the first hardware stop
-            late_writes.append(not PCA9685Emulator(state_file=tmp_path / "chip.json")
-                               .refresh().all_off())
+            board = PCA9685Emulator(state_file=tmp_path / "chip.json")
+            asleep_before = board.refresh().sleeping and board.all_off()
+            try:
+                drive.write(0.4, -0.4)  # the tick in flight lands after the stop
+                outcome = "written"
+            except BoardAsleep:
+                outcome = "asleep"
+            seen.append((outcome, asleep_before, board.refresh().all_off()))
 
         server = ControlServer(last_tick_then_latch, tmp_path / "run" / "control.sock")
         server.start()
@@ -284,7 +293,8 @@ class TestARuntimesLastTickAfterTheFirstStop:
             result = stop_command(tmp_path)
         finally:
             server.close()
-        assert late_writes == [True], "the late write reached the board"
-        assert chip.refresh().all_off(), chip.duties()
+        assert seen == [("asleep", True, True)], seen
+        assert chip.refresh().all_off() and chip.sleeping, chip.duties()
+        assert chip.channel(1).off_count == 0x666  # the late duty reached the registers only
         assert result.returncode == 0, result.stdout + result.stderr
         assert "motor outputs off" in result.stdout

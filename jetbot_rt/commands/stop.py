@@ -1,26 +1,29 @@
-"""``jetbot-rt stop``: turn every motor output off, latch a running runtime's safe stop, report.
+"""``jetbot-rt stop``: turn every motor output off for good, then latch running runtimes' safe
+stop, confirm, report.
 
 This is what systemd runs after every end of the service (``ExecStopPost``), a crash or a
 watchdog kill included, so it needs nothing but the config and the I2C bus: no camera, no
 policy, no onnxruntime. In this order:
 
-1. The hardware stop, first, whatever else fails: every output full-off (one write), on the
-   configured bus and address if the config can be read (in bounded time), else on the
-   defaults.
-2. Every runtime whose control socket it finds is asked to latch its safe stop (an orderly
-   end, exit 0).
-3. The stop again, now with the chip put to SLEEP: every output full-off, then the oscillator
-   off, in one combined I2C transaction. Asleep, the chip holds its outputs off whatever a
-   process writes to its LED registers (``hal/motors.py``). So ``stop`` need not reach a
-   runtime: one it could not talk to finds the chip asleep at its next write, which is a
-   fault, and ends in its safe stop (exit 3).
+1. Which board: the config's ``[motors]`` bus and address (read in bounded time). If the
+   config cannot be read, the board the last runtime recorded in its runtime directory
+   (``runtime_dir.read_board_record``: read as untrusted), else the defaults, saying so.
+2. The stop, before any other process is asked anything: every output full-off, then the
+   oscillator off (SLEEP), in one combined I2C transaction. Asleep, the chip holds its
+   outputs off whatever a process writes to its LED registers (``hal/motors.py``); a
+   runtime's next write finds it asleep, which is a fault, and ends in its safe stop
+   (exit 3). Nothing any other process does can delay this step.
+3. Every runtime whose control socket it trusts is asked, all at once, to latch its safe stop
+   (an orderly end), for at most ``ASK_TOTAL_S`` in all (``stop_socket.request_stop``).
+   Directories and sockets of other users, and links, are not asked; one line names them.
+   If step 2 failed (a burst of bus errors), the stop is written once more now.
 4. Confirmation: it waits (at most ``CONFIRM_S``) until no process owns the bus (the owner's
    ``flock``, ``hal/ownership.py``), then reads MODE1 back. Success only if the chip still
    sleeps (nobody set it up again) and nobody owns the bus.
 
 Exit 0 when the motors are confirmed off; 1 when the board cannot be reached or the stop
 cannot be confirmed (the line names the process that still owns the bus); 2 when the config
-is bad (the stop is still written, on the default bus and address).
+is bad (the stop is still written, on the recorded or the default board).
 """
 
 from __future__ import annotations
@@ -34,15 +37,20 @@ from collections.abc import Callable
 from jetbot_rt.config import MotorsConfig, load_config
 from jetbot_rt.errors import EXIT_USAGE, UsageError, first_line
 from jetbot_rt.hal.i2c import I2CBus, I2CFault, add_emulator_argument, emulator_notice
-from jetbot_rt.hal.motors import hardware_stop, read_mode1, stop_and_sleep
+from jetbot_rt.hal.motors import read_mode1, stop_and_sleep
 from jetbot_rt.hal.ownership import bus_device, describe, owned, owner_pids
 from jetbot_rt.hal.pca9685 import MODE1_SLEEP
-from jetbot_rt.stop_socket import request_stop
+from jetbot_rt.runtime_dir import read_board_record
+from jetbot_rt.stop_socket import ASK_TOTAL_S, request_stop
+
+__all__ = ["ASK_TOTAL_S", "CONFIRM_S", "add_arguments", "run"]
 
 EXIT_BOARD_UNREACHABLE = 1
 CONFIRM_S = 3.0
 """How long ``stop`` waits for the bus's owner to end: a runtime it could not reach ends at
 its next write (one period, then its exit: camera child, telemetry)."""
+MAX_NAMED = 4
+"""Paths named in a line (unreachable sockets, what was ignored); the rest are counted."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,6 +66,19 @@ def _motors(path: str | None) -> tuple[MotorsConfig, str | None]:
         return MotorsConfig(), str(exc)
     except Exception as exc:  # the stop must go out whatever the config holds
         return MotorsConfig(), f"config {path}: {type(exc).__name__}: {first_line(exc)}"
+
+
+def _recorded_motors() -> tuple[MotorsConfig, str]:
+    """The board the last runtime recorded, or the defaults; and which, for the user."""
+    try:
+        record, why = read_board_record()
+    except Exception as exc:  # the stop must go out whatever the directory holds
+        record, why = None, f"{type(exc).__name__}: {first_line(exc)}"
+    if record is None:
+        return MotorsConfig(), f"using the default bus and address ({why})"
+    motors = MotorsConfig(i2c_bus=record.i2c_bus, address=record.address,
+                          emulator=record.emulator)
+    return motors, f"using the board the runtime recorded in {record.path}"
 
 
 def _write_stop(motors: MotorsConfig, write: Callable[[I2CBus, int], None]) -> str | None:
@@ -91,26 +112,35 @@ def _confirm(motors: MotorsConfig) -> str | None:
     return None
 
 
+def _listed(items: list[str]) -> str:
+    more = len(items) - MAX_NAMED
+    return "; ".join(items[:MAX_NAMED]) + (f"; and {more} more" if more > 0 else "")
+
+
 def run(args: argparse.Namespace) -> int:
     motors, config_error = _motors(args.config)
     exit_code = 0
     if config_error is not None:
         # This is systemd's ExecStopPost: a config edited while the service ran must not
-        # stop the stop. Fall back to the default bus and address, and say so.
-        motors = MotorsConfig()
+        # stop the stop. The board the runtime recorded, else the defaults; and say so.
+        motors, which = _recorded_motors()
+        config_error = f"{config_error}; {which}"
         exit_code = EXIT_USAGE
     if args.board_emulator:  # the harness's board, whatever the config says or failed to say
         motors = dataclasses.replace(motors, emulator=args.board_emulator)
     if motors.emulator:
         print(f"jetbot-rt stop: {emulator_notice(motors.emulator)}", flush=True)
     where = f"I2C bus {motors.i2c_bus} address 0x{motors.address:02x}"
-    _write_stop(motors, hardware_stop)  # first: nothing may delay it
-    reply = request_stop()
-    error = _write_stop(motors, stop_and_sleep)
+    error = _write_stop(motors, stop_and_sleep)  # first: nothing and nobody may delay it
+    reply = request_stop()  # bounded in all: ASK_TOTAL_S
+    if error is not None:  # a burst of bus errors: the asking gave the bus time to recover
+        error = _write_stop(motors, stop_and_sleep)
     if reply:
         print("jetbot-rt stop: the running runtime latched its safe stop")
     if config_error is not None:
-        print(f"jetbot-rt stop: {config_error}; using the default bus and address",
+        print(f"jetbot-rt stop: {config_error}", file=sys.stderr)
+    if reply.ignored:
+        print(f"jetbot-rt stop: ignored, not this user's or root's: {_listed(reply.ignored)}",
               file=sys.stderr)
     if error is None:
         error = _confirm(motors)
@@ -119,8 +149,8 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BOARD_UNREACHABLE
     print(f"jetbot-rt stop: motor outputs off ({where}); the chip sleeps until a runtime "
           "sets it up again")
-    for problem in reply.unreachable:
+    if reply.unreachable:
         # Informative only: the board is confirmed off and nobody owns it any more.
-        print(f"jetbot-rt stop: note: could not ask a runtime to stop ({problem})",
-              file=sys.stderr)
+        print(f"jetbot-rt stop: note: could not ask {len(reply.unreachable)} runtime "
+              f"socket(s) to stop: {_listed(reply.unreachable)}", file=sys.stderr)
     return exit_code

@@ -223,7 +223,7 @@ def open_drive(motors: MotorsConfig) -> Drive:
     """
     from jetbot_rt.hal.ownership import BoardLock
 
-    owner = BoardLock.acquire(motors.i2c_bus, motors.emulator)  # before the first write
+    owner = BoardLock.acquire(motors.i2c_bus, motors.emulator, motors.address)  # before any write
     try:
         bus = I2CBus.for_motors(motors)
     except BaseException:

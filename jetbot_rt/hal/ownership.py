@@ -7,6 +7,11 @@ is on the device node itself, so it does not depend on the environment, the user
 directory: anyone who can open the bus to write it can open it to lock it, and two processes
 that start at the same moment cannot both get it. ``jetbot-rt stop`` takes no lock (it always
 writes the stop); it reads the owner's pid from ``/proc/locks`` to say who drives.
+
+Taking the board also records it (bus, address, emulator state file) in the runtime directory
+(``runtime_dir.write_board_record``): systemd's ``ExecStopPost`` finds the board the runtime
+drove even when the config it is given cannot be read. The record outlives the process on
+purpose (``ExecStopPost`` runs after it); systemd removes the service's directory after that.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import os
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
+from jetbot_rt.runtime_dir import write_board_record
 
 _held: dict[str, BoardLock] = {}
 
@@ -30,13 +36,21 @@ def bus_device(bus_number: int, emulator: str | None = None) -> Path:
 
 def _open(path: Path) -> int:
     flags = os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK | os.O_NOCTTY
-    if path.name.endswith(".owner"):  # the emulator's: create it, lockable by every user
-        old = os.umask(0)
-        try:
-            return os.open(path, flags | os.O_CREAT, 0o666)
-        finally:
-            os.umask(old)
-    return os.open(path, flags)
+    if not path.name.endswith(".owner"):
+        return os.open(path, flags)
+    # The emulator's: never through a link (root would create the file a link names), and no
+    # O_CREAT on an existing file (protected_regular refuses it to root in /tmp when another
+    # user owns the file); a missing one is created lockable by every user.
+    flags |= os.O_NOFOLLOW
+    try:
+        return os.open(path, flags)
+    except FileNotFoundError:
+        pass
+    old = os.umask(0)
+    try:
+        return os.open(path, flags | os.O_CREAT, 0o666)
+    finally:
+        os.umask(old)
 
 
 def owner_pids(path: Path) -> list[int]:
@@ -100,14 +114,18 @@ class BoardLock:
         self._users = 1
 
     @classmethod
-    def acquire(cls, bus_number: int, emulator: str | None = None) -> BoardLock:
+    def acquire(cls, bus_number: int, emulator: str | None = None,
+                address: int | None = None) -> BoardLock:
         """Own bus ``bus_number`` (or the emulator in the file ``emulator``) or raise
         ``UsageError`` naming the owner. Re-entrant within a process (``check --spin`` owns
-        the bus before it opens the drive)."""
+        the bus before it opens the drive). With ``address``, the board is recorded in the
+        runtime directory once owned."""
         path = bus_device(bus_number, emulator)
         held = _held.get(str(path))
         if held is not None and held._fd is not None:
             held._users += 1
+            if address is not None:
+                write_board_record(bus_number, address, emulator)
             return held
         try:
             fd = _open(path)
@@ -128,6 +146,8 @@ class BoardLock:
             ) from None
         lock = cls(path, fd)
         _held[str(path)] = lock
+        if address is not None:
+            write_board_record(bus_number, address, emulator)
         return lock
 
     def release(self) -> None:

@@ -12,12 +12,20 @@ registers change, the outputs do not); waking makes the registers drive the outp
 This is the stricter of the two readings (the other: every output off while asleep): a
 stop that put the chip to sleep before turning the outputs off would leave them on here.
 
-With ``state_file`` the registers live in a JSON file shared by every process that opens it:
-each transaction takes an ``flock`` on ``<state_file>.lock``, loads, applies and writes the
-state back with an atomic replace, so a writer killed by SIGKILL leaves either the old or the
-new state, never half of one. ``--board-emulator <state file>`` (or ``[motors] emulator``)
-makes ``jetbot_rt.hal.i2c`` open this instead of ``/dev/i2c-N``: tests and dry runs only, and
-announced (docs/HARDWARE.md). The register map is ``jetbot_rt.hal.pca9685``, the drivers' own.
+With ``state_file`` the registers live in a small fixed-size binary file shared by every
+process that opens it (``STATE``: registers, fault injection, counters). Each transaction
+takes an ``flock`` on that file, reads it with one ``pread``, applies and writes it back in
+place with one ``pwrite`` at offset 0: a few microseconds, no rename, no new inode, so a tick
+never waits for a directory operation, and the file keeps the owner and mode it was created
+with whoever writes it (a ``jetbot-rt stop`` run as root leaves it writable by the service's
+user). The whole state is one write inside one page, which a SIGKILL cannot cut in two. A
+lock held by a process that no longer runs (SIGSTOP) is waited for at most ``LOCK_WAIT_S``,
+then the transaction fails like a bus that does not answer. The file is opened without
+following a symbolic link and must be a regular file of exactly the state's size; one that
+does not exist is created (by a root process: given to its directory's owner).
+``--board-emulator <state file>`` (or ``[motors] emulator``) makes ``jetbot_rt.hal.i2c`` open
+this instead of ``/dev/i2c-N``: tests and dry runs only, and announced (docs/HARDWARE.md).
+The register map is ``jetbot_rt.hal.pca9685``, the drivers' own.
 
 Fault injection (also through the file, so it reaches another process): ``fail_next`` makes
 the next N transactions raise ``OSError(EREMOTEIO)``; ``absent`` makes the chip not answer.
@@ -27,9 +35,11 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import json
 import os
-import tempfile
+import stat
+import struct
+import time
+import weakref
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -55,6 +65,63 @@ from jetbot_rt.hal.pca9685 import (
     OSCILLATOR_HZ,
     PRE_SCALE,
 )
+
+MAGIC = b"PCA9685E"
+VERSION = 2
+STATE = struct.Struct(f"<8sIHHB3xqQQ256s{CHANNELS}d{CHANNELS}d")
+"""magic, version, address, register pointer, absent, fail_next, transactions, bytes,
+the 256 registers, peak duty and held duty of each output."""
+LOCK_WAIT_S = 2.0
+"""A transaction waits at most this long for another's lock (a holder can only keep it this
+long if it was stopped mid-transaction); then it fails as a bus that does not answer."""
+_FLAGS = os.O_RDWR | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY
+
+
+def _open_state(path: Path) -> int:
+    """The state file, opened read-write without following a link; created if missing
+    (never with ``O_CREAT`` on an existing file: Linux's ``protected_regular`` refuses that to
+    root in a sticky directory such as /tmp when another user owns the file)."""
+    try:
+        fd = os.open(path, _FLAGS)
+    except FileNotFoundError:
+        try:
+            fd = os.open(path, _FLAGS | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:  # another process created it just now
+            fd = os.open(path, _FLAGS)
+        else:
+            _give_to_directory_owner(fd, path)
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(errno.EINVAL, "not a regular file")
+    return fd
+
+
+def _give_to_directory_owner(fd: int, path: Path) -> None:
+    """A file root creates for another user's board (a ``stop`` before any runtime) belongs to
+    whoever owns its directory, so that user's runtime can still write it."""
+    if os.geteuid() != 0:
+        return
+    try:
+        parent = os.stat(path.parent)
+        if parent.st_uid != 0:
+            os.fchown(fd, parent.st_uid, parent.st_gid)
+    except OSError:
+        pass  # left to root: the runtime's open says why, if it ever matters
+
+
+def _lock(fd: int) -> None:
+    deadline = time.monotonic() + LOCK_WAIT_S
+    delay = 0.00005
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                raise OSError(errno.ETIMEDOUT, f"the emulator's state file stayed locked "
+                                               f"for {LOCK_WAIT_S:g} s") from None
+            time.sleep(delay)
+            delay = min(2 * delay, 0.001)
 
 
 def power_on_registers() -> list[int]:
@@ -100,60 +167,59 @@ class PCA9685Emulator:
         """The outputs while the oscillator sleeps: what they were when it stopped."""
         self._pointer = 0
         self._state_file = Path(state_file) if state_file is not None else None
+        self._fd: int | None = None
+        self._closer: weakref.finalize | None = None
         if self._state_file is not None:
             with self._shared_state():
                 pass  # creates the file with power-on state if it does not exist yet
 
     # ---- shared state ------------------------------------------------------------------
 
+    def _state_fd(self) -> int:
+        if self._fd is None:
+            assert self._state_file is not None
+            self._fd = _open_state(self._state_file)
+            self._closer = weakref.finalize(self, os.close, self._fd)
+        return self._fd
+
     @contextmanager
     def _shared_state(self) -> Iterator[None]:
         if self._state_file is None:
             yield
             return
-        lock_path = self._state_file.with_name(self._state_file.name + ".lock")
-        with open(lock_path, "a") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
+        fd = self._state_fd()
+        _lock(fd)
+        try:
+            data = os.pread(fd, STATE.size + 1, 0)
+            if data:  # empty: just created, this instance's power-on state goes in
+                self._load(data)
             try:
-                if self._state_file.exists():
-                    self._load(json.loads(self._state_file.read_text()))
-                try:
-                    yield
-                finally:
-                    # also after a failed transaction: an injected failure is used up (and
-                    # counted) in the shared state too, not only in this process's copy
-                    self._save()
+                yield
             finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
+                # also after a failed transaction: an injected failure is used up (and
+                # counted) in the shared state too, not only in this process's copy
+                os.pwrite(fd, self._pack(), 0)
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
 
-    def _load(self, state: dict[str, Any]) -> None:
-        self.address = state["address"]
-        self.registers = list(state["registers"])
-        self.fail_next = state.get("fail_next", 0)
-        self.absent = state.get("absent", False)
-        self.transactions = state.get("transactions", 0)
-        self.bytes = state.get("bytes", 0)
-        self.peak_duty = list(state.get("peak_duty", [0.0] * CHANNELS))
-        self.held = list(state.get("held", [0.0] * CHANNELS))
-        self._pointer = state.get("pointer", 0)
+    def _load(self, data: bytes) -> None:
+        if len(data) != STATE.size or not data.startswith(MAGIC):
+            raise OSError(errno.EINVAL, f"not a PCA9685 emulator state file of version "
+                                        f"{VERSION} ({len(data)} bytes); delete it")
+        (_magic, version, self.address, self._pointer, absent, self.fail_next,
+         self.transactions, self.bytes, registers, *duties) = STATE.unpack(data)
+        if version != VERSION:
+            raise OSError(errno.EINVAL, f"emulator state file of version {version}, not "
+                                        f"{VERSION}; delete it")
+        self.absent = bool(absent)
+        self.registers = list(registers)
+        self.peak_duty = list(duties[:CHANNELS])
+        self.held = list(duties[CHANNELS:])
 
-    def _save(self) -> None:
-        assert self._state_file is not None
-        state = {
-            "address": self.address,
-            "registers": self.registers,
-            "fail_next": self.fail_next,
-            "absent": self.absent,
-            "transactions": self.transactions,
-            "bytes": self.bytes,
-            "peak_duty": self.peak_duty,
-            "held": self.held,
-            "pointer": self._pointer,
-        }
-        fd, tmp = tempfile.mkstemp(dir=self._state_file.parent, prefix=".pca9685-")
-        with os.fdopen(fd, "w") as out:
-            json.dump(state, out)
-        os.replace(tmp, self._state_file)
+    def _pack(self) -> bytes:
+        return STATE.pack(MAGIC, VERSION, self.address, self._pointer, self.absent,
+                          self.fail_next, self.transactions, self.bytes, bytes(self.registers),
+                          *self.peak_duty, *self.held)
 
     def refresh(self) -> PCA9685Emulator:
         """Re-read the shared state file (what another process wrote); returns self."""
@@ -167,6 +233,8 @@ class PCA9685Emulator:
             for name, value in fields.items():
                 if name not in ("fail_next", "absent"):
                     raise ValueError(f"not a fault-injection field: {name}")
+                if type(value) is not (int if name == "fail_next" else bool) or value < 0:
+                    raise ValueError(f"{name} must be a count or a bool, got {value!r}")
                 setattr(self, name, value)
 
     # ---- the bus transactions (smbus2.SMBus interface) ---------------------------------
@@ -233,7 +301,10 @@ class PCA9685Emulator:
             return self._read(length)
 
     def close(self) -> None:
-        pass
+        """Closes the state file; the next transaction or ``refresh()`` opens it again."""
+        if self._closer is not None:
+            self._closer()
+        self._fd = self._closer = None
 
     def __enter__(self) -> PCA9685Emulator:
         return self
