@@ -53,21 +53,21 @@ def unused_uid() -> int:
 def as_user(uid: int, code: str, *args: str, modules: tuple[str, ...] = (),
             env: dict | None = None, timeout: float = 30.0, **popen: object
             ) -> subprocess.CompletedProcess[str]:
-    """Run ``code`` (``sys.argv[1:]`` = ``args``) as ``uid``, ``modules`` imported first."""
+    """Run ``code`` (``sys.argv[1:]`` = ``args``) as ``uid``, ``modules`` imported first;
+    in ``env``, else in ``user_env()``."""
     return subprocess.run(command(uid, code, *args, modules=modules), capture_output=True,
-                          text=True, timeout=timeout, cwd="/", env=user_env(env), **popen)
+                          text=True, timeout=timeout, cwd="/",
+                          env=user_env() if env is None else dict(env, HOME="/"), **popen)
 
 
 def command(uid: int, code: str, *args: str, modules: tuple[str, ...] = ()) -> list[str]:
     return [sys.executable, "-c", _PRELUDE + code, str(uid), ",".join(modules), *args]
 
 
-def user_env(env: dict | None = None) -> dict:
+def user_env() -> dict:
     """No runtime directory in the environment (sudo, cron): the fallbacks are under test."""
-    base = dict(os.environ if env is None else env)
-    for name in ("JETBOT_RT_RUNTIME_DIR", "RUNTIME_DIRECTORY", "XDG_RUNTIME_DIR"):
-        base.pop(name, None)
-    return dict(base, HOME="/")
+    names = ("JETBOT_RT_RUNTIME_DIR", "RUNTIME_DIRECTORY", "XDG_RUNTIME_DIR")
+    return dict({k: v for k, v in os.environ.items() if k not in names}, HOME="/")
 
 
 @contextlib.contextmanager
