@@ -1,12 +1,22 @@
 """Reading a recording (docs/RECORDING.md) or a bare telemetry file, for replay and report.
 
+Nothing in a recording is trusted: it may have been copied from a robot, downloaded, or planted
+in a shared directory. Each file is read through ``safe_file`` (a regular file, not through a
+symbolic link, size-capped, strict UTF-8 and JSON) and every record is validated once, here,
+before anything uses it: types, finite numbers within bounds, tick times and numbers that only
+go forward, frame indices that only go forward and never past their tick. Whatever is wrong is
+one ``UsageError`` naming the file, the line and the key.
+
 A recording cut short (the process killed, the disk full) is read as far as it goes: a
-half-written last line is skipped, and ticks whose frame never reached the file have none.
+half-written last line (no newline) is skipped, and ticks whose frame never reached the video
+have none.
 """
 
 from __future__ import annotations
 
-import json
+import math
+import os
+import stat
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,25 +25,209 @@ from typing import Any
 import cv2
 import numpy as np
 
+from jetbot_rt import safe_file
 from jetbot_rt.errors import UsageError
+from jetbot_rt.policy import MAX_INPUT_SIDE
 from jetbot_rt.recorder import FORMAT, VERSION
+from jetbot_rt.safe_file import MIB, shown
+
+META_BYTES = 4 * MIB
+"""``meta.json`` and ``summary.json``: a few KB (the config, the policy's metadata)."""
+TICKS_BYTES = 128 * MIB
+"""``ticks.jsonl`` or a telemetry file: about 300 bytes a tick, so some 4 hours at 30 Hz. Every
+record is held in memory (about 1 GB at the cap), which a Jetson Nano's 4 GB still has."""
+LINE_BYTES = 1 * MIB
+"""One record; the longest we write (the ``end`` event with the run's summary) is a few KB."""
+MAX_TIME_S = 1e9
+"""``t``: 30 years of run time; a larger one is not a time a run had."""
+MAX_MS = 1e9
+MAX_COUNT = 2**53
+"""Tick numbers, frame indices, counters: integers a float can still hold exactly."""
+RATE_HZ = (0.1, 1000.0)
 
 
-def read_jsonl(path: Path) -> list[dict[str, Any]]:
-    """Records of a JSON Lines file; an unparsable line (a cut-off last one) is skipped."""
-    try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError as exc:
-        raise UsageError(f"cannot read {path}: {exc.strerror or exc}") from None
+class Invalid(Exception):
+    """A value that breaks the format; the message says which key and why."""
+
+
+def _number(record: dict[str, Any], key: str, low: float, high: float,
+            optional: bool = False) -> float | None:
+    value = record.get(key)
+    if value is None and optional:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise Invalid(f"{key} must be a number, got {_kind(value)}")
+    if not (math.isfinite(value) and low <= value <= high):
+        raise Invalid(f"{key} must be within [{low:g}, {high:g}], got {value!r}")
+    return value
+
+
+def _integer(record: dict[str, Any], key: str, low: int, high: int = MAX_COUNT,
+             optional: bool = False) -> int | None:
+    value = record.get(key)
+    if value is None and optional:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise Invalid(f"{key} must be an integer, got {_kind(value)}")
+    if not low <= value <= high:
+        raise Invalid(f"{key} must be within [{low}, {high}], got {value}")
+    return value
+
+
+def _pair(record: dict[str, Any], key: str, bound: float, optional: bool = False) -> None:
+    value = record.get(key)
+    if value is None and optional:
+        return
+    if not isinstance(value, list) or len(value) != 2:
+        raise Invalid(f"{key} must be a list of two numbers, got {_kind(value)}")
+    for index in range(2):
+        _number({f"{key}[{index}]": value[index]}, f"{key}[{index}]", -bound, bound)
+
+
+def _text(record: dict[str, Any], key: str, optional: bool = True) -> None:
+    value = record.get(key)
+    if not (isinstance(value, str) or (value is None and optional)):
+        raise Invalid(f"{key} must be text, got {_kind(value)}")
+
+
+def _table(record: dict[str, Any], key: str) -> dict[str, Any]:
+    value = record.get(key, {})
+    if not isinstance(value, dict):
+        raise Invalid(f"{key} must be an object, got {_kind(value)}")
+    return value
+
+
+def _kind(value: Any) -> str:
+    if value is None:
+        return "nothing"
+    text = repr(value)
+    return f"{type(value).__name__} {text[:40]}{'...' if len(text) > 40 else ''}"
+
+
+def check_meta(meta: Any) -> dict[str, Any]:
+    """``meta.json``'s keys that jetbot_rt uses; the message of ``Invalid`` names the key."""
+    if not isinstance(meta, dict):
+        raise Invalid(f"must be a JSON object, got {_kind(meta)}")
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise Invalid(f"recording format {str(meta.get('format'))[:40]!r} version "
+                      f"{str(meta.get('version'))[:10]!r}; this jetbot-rt reads {FORMAT!r} "
+                      f"version {VERSION}")
+    size = meta.get("frame_size")
+    if not isinstance(size, list) or len(size) != 2:
+        raise Invalid(f"frame_size must be [width, height], got {_kind(size)}")
+    _integer({"frame_size[0]": size[0]}, "frame_size[0]", 1, MAX_INPUT_SIDE)
+    _integer({"frame_size[1]": size[1]}, "frame_size[1]", 1, MAX_INPUT_SIDE)
+    _number(meta, "rate_hz", *RATE_HZ)
+    frames = meta.get("frames")
+    if not isinstance(frames, str) or frames in ("", ".", "..") or "/" in frames \
+            or "\0" in frames:
+        raise Invalid(f"frames must be a file name in the recording, got {_kind(frames)}")
+    _number(meta, "max_speed", 1e-9, 1.0, optional=True)
+    for key in ("backend", "source", "codec"):
+        _text(meta, key)
+    policy = _table(meta, "policy")
+    for key in ("path", "sha256"):
+        _text(policy, f"{key}", optional=True)
+    if not isinstance(policy.get("metadata", {}), dict):
+        raise Invalid("policy.metadata must be an object")
+    config = _table(meta, "config")
+    if not isinstance(config.get("policy", {}), dict):
+        raise Invalid(f"config.policy must be an object, got {_kind(config.get('policy'))}")
+    return meta
+
+
+def check_summary(summary: Any) -> dict[str, Any]:
+    if not isinstance(summary, dict):
+        raise Invalid(f"must be a JSON object, got {_kind(summary)}")
+    for key in ("frames_written", "frames_dropped", "records_written", "records_lost"):
+        _integer(summary, key, 0, optional=True)
+    _text(summary, "error")
+    _table(summary, "run")
+    return summary
+
+
+class RecordChecker:
+    """Checks records in file order. Tick records: ``t`` and ``tick`` only go forward (events
+    come from other threads and are not ordered); ``frame`` indices only go forward and never
+    past the number of ticks before them (a tick writes at most one frame)."""
+
+    def __init__(self, with_frames: bool) -> None:
+        self.with_frames = with_frames
+        self.ticks = 0
+        self.last_t = -math.inf
+        self.last_tick = -1
+        self.last_frame = -1
+
+    def check(self, record: Any) -> dict[str, Any]:
+        if not isinstance(record, dict):
+            raise Invalid(f"a record must be a JSON object, got {_kind(record)}")
+        if "event" in record:
+            _text(record, "event", optional=False)
+            _number(record, "t", 0.0, MAX_TIME_S)
+            _text(record, "reason")
+            if not isinstance(record.get("fault", False), bool):
+                raise Invalid(f"fault must be true or false, got {_kind(record.get('fault'))}")
+            _pair(record, "cmd", 1.0, optional=True)
+            return record
+        if "tick" not in record:
+            raise Invalid("neither a tick record (no tick) nor an event (no event)")
+        t = _number(record, "t", 0.0, MAX_TIME_S)
+        tick = _integer(record, "tick", 0)
+        assert t is not None and tick is not None
+        if t < self.last_t:
+            raise Invalid(f"t goes back: {t!r} after {self.last_t!r}")
+        if tick <= self.last_tick:
+            raise Invalid(f"tick {tick} after tick {self.last_tick}")
+        _pair(record, "mu", math.inf)
+        _pair(record, "cmd", 1.0)
+        for key in ("frame_age_ms", "infer_ms", "tick_ms"):
+            _number(record, key, -MAX_MS, MAX_MS)
+        _integer(record, "overruns", 0)
+        _text(record, "state")
+        if self.with_frames:
+            frame = _integer(record, "frame", 0, self.ticks, optional=True)
+            if frame is not None:
+                if frame <= self.last_frame:
+                    raise Invalid(f"frame {frame} after frame {self.last_frame}")
+                self.last_frame = frame
+        self.last_t, self.last_tick = t, tick
+        self.ticks += 1
+        return record
+
+
+def read_records(path: Path, with_frames: bool) -> list[dict[str, Any]]:
+    """Every record of a JSON Lines file, each checked; a cut-off last line is skipped.
+    ``with_frames``: a recording's ``ticks.jsonl`` (not followed through a link), else a
+    telemetry file the user named."""
+    checker = RecordChecker(with_frames)
     records = []
-    for line in lines:
-        try:
-            record = json.loads(line)
-        except ValueError:
+    for number, line, complete in safe_file.iter_lines(
+            path, "recording file" if with_frames else "telemetry file", TICKS_BYTES,
+            LINE_BYTES, follow_links=not with_frames):
+        if not line.strip():
             continue
-        if isinstance(record, dict):
-            records.append(record)
+        try:
+            record = safe_file.loads(line.decode("utf-8"))
+        except ValueError as exc:  # UnicodeDecodeError included
+            if not complete:
+                break  # the write was cut short: the record never finished
+            reason = (f"not UTF-8: byte 0x{line[exc.start]:02x}"
+                      if isinstance(exc, UnicodeDecodeError) else str(exc))
+            raise UsageError(f"{shown(path)} line {number}: not a JSON record "
+                             f"({reason})") from None
+        try:
+            records.append(checker.check(record))
+        except Invalid as exc:
+            raise UsageError(f"{shown(path)} line {number}: {exc}") from None
     return records
+
+
+def _read_object(path: Path, check: Any) -> dict[str, Any]:
+    data = safe_file.read_json(path, "recording file", META_BYTES, follow_links=False)
+    try:
+        return check(data)  # type: ignore[no-any-return]
+    except Invalid as exc:
+        raise UsageError(f"{shown(path)}: {exc}") from None
 
 
 @dataclass
@@ -48,7 +242,7 @@ class Recording:
 
     @property
     def ticks(self) -> list[dict[str, Any]]:
-        return [r for r in self.records if "event" not in r and "tick" in r]
+        return [r for r in self.records if "event" not in r]
 
     @property
     def events(self) -> list[dict[str, Any]]:
@@ -56,53 +250,70 @@ class Recording:
 
     @classmethod
     def open(cls, path: str | Path) -> Recording:
+        safe_file.text_path(path, "recording")
         path = Path(path)
-        if path.is_file():
-            records = read_jsonl(path)
-            if not records:
-                raise UsageError(f"{path}: no JSON Lines records in it")
-            return cls(path, records)
-        meta_path = path / "meta.json"
         try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as exc:
-            raise UsageError(f"{path} is not a recording (no readable meta.json: "
-                             f"{getattr(exc, 'strerror', None) or exc})") from None
-        if meta.get("format") != FORMAT or meta.get("version") != VERSION:
-            raise UsageError(f"{path}: recording format {meta.get('format')!r} version "
-                             f"{meta.get('version')!r}; this jetbot-rt reads {FORMAT!r} "
-                             f"version {VERSION}")
+            is_dir = stat.S_ISDIR(os.stat(path).st_mode)
+        except OSError as exc:
+            raise UsageError(f"cannot read {shown(path)}: {exc.strerror or exc}") from None
+        if not is_dir:
+            records = read_records(path, with_frames=False)
+            if not records:
+                raise UsageError(f"{shown(path)}: no JSON Lines records in it")
+            return cls(path, records)
+        if not os.path.lexists(path / "meta.json"):
+            raise UsageError(f"{shown(path)} is not a recording (no meta.json)")
+        meta = _read_object(path / "meta.json", check_meta)
         summary: dict[str, Any] = {}
-        if (path / "summary.json").is_file():
-            try:
-                summary = json.loads((path / "summary.json").read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                summary = {}
-        return cls(path, read_jsonl(path / "ticks.jsonl"), meta, summary,
-                   path / meta.get("frames", "frames.mkv"))
+        if os.path.lexists(path / "summary.json"):  # written at the end: a cut run has none
+            summary = _read_object(path / "summary.json", check_summary)
+        return cls(path, read_records(path / "ticks.jsonl", with_frames=True), meta, summary,
+                   path / meta["frames"])
 
     def frames(self) -> Iterator[np.ndarray]:
-        """The recorded frames in order, HxWx3 uint8 RGB, as the policy received them."""
-        if self.frames_path is None or not self.frames_path.is_file():
+        """The recorded frames in order, HxWx3 uint8 RGB, as the policy received them. The
+        video must hold frames of ``meta.json``'s ``frame_size``; OpenCV is given the open
+        file (``/proc/self/fd/N``), never a name somebody could swap."""
+        if self.frames_path is None or not os.path.lexists(self.frames_path):
             return
-        capture = cv2.VideoCapture(str(self.frames_path))
+        fd = safe_file.open_regular(self.frames_path, "recording file", follow_links=False)
+        capture = cv2.VideoCapture(f"/proc/self/fd/{fd}")
         try:
+            if not capture.isOpened():
+                return
+            width, height = self.meta["frame_size"]
+            found = (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                     int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+            if found != (width, height):
+                raise UsageError(f"{shown(self.frames_path)} holds {found[0]}x{found[1]} "
+                                 f"frames, meta.json says {width}x{height}")
             while True:
                 ok, image = capture.read()
                 if not ok:
                     return
+                if image.shape != (height, width, 3):
+                    raise UsageError(f"{shown(self.frames_path)}: a frame of shape "
+                                     f"{image.shape}, expected {height}x{width}x3")
                 yield np.ascontiguousarray(image[:, :, ::-1])
         finally:
             capture.release()
+            os.close(fd)
 
     def ticks_with_frames(self) -> Iterator[tuple[dict[str, Any], np.ndarray | None]]:
-        """Each tick record with its frame (None when it was dropped or never written)."""
+        """Each tick record with its frame (None when it was dropped or never written). Frame
+        indices only go forward (checked on reading), so each frame is decoded at most once
+        and the video is read no further than the last tick needs."""
         frames = self.frames()
         next_index = 0
-        for record in self.ticks:
-            index = record.get("frame")
-            image: np.ndarray | None = None
-            while index is not None and next_index <= index:
-                image = next(frames, None)
-                next_index = next_index + 1 if image is not None else index + 1
-            yield record, image
+        exhausted = False
+        try:
+            for record in self.ticks:
+                index = record.get("frame")
+                image: np.ndarray | None = None
+                while index is not None and next_index <= index and not exhausted:
+                    image = next(frames, None)
+                    exhausted = image is None
+                    next_index += 1
+                yield record, image
+        finally:
+            frames.close()

@@ -21,6 +21,7 @@ from jetbot_rt.errors import EXIT_OK, UsageError
 from jetbot_rt.policy import OnnxPolicy
 from jetbot_rt.recorder import sha256_of
 from jetbot_rt.recording import Recording
+from jetbot_rt.safe_file import shown
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,12 +34,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "summary, with mu_max_abs_diff")
 
 
-def policy_config(meta: dict[str, Any]) -> PolicyConfig:
-    """The recorded run's ``[policy]`` overrides (colour order, range, layout, threads)."""
+def policy_config(recording: Recording) -> PolicyConfig:
+    """The recorded run's ``[policy]`` overrides (colour order, range, layout, threads), each
+    checked as a config file's would be."""
     config = PolicyConfig()
-    for key, value in meta.get("config", {}).get("policy", {}).items():
+    for key, value in recording.meta.get("config", {}).get("policy", {}).items():
         if key not in ("path", "providers"):
-            set_value(config, "policy", key, value)
+            try:
+                set_value(config, "policy", key, value)
+            except (UsageError, TypeError, ValueError) as exc:
+                raise UsageError(f"{shown(recording.path / 'meta.json')}: config.policy: "
+                                 f"{str(exc)[:200]}") from None
     return config
 
 
@@ -66,7 +72,8 @@ def replay(recording: Recording, policy: OnnxPolicy, threshold: float,
             missing += 1
             continue
         mu = policy.infer(image)
-        diff = np.abs(mu - np.asarray(record["mu"], dtype=np.float64))
+        with np.errstate(over="ignore"):  # a recorded mu near the float limit: inf, not noise
+            diff = np.abs(mu - np.asarray(record["mu"], dtype=np.float64))
         worst = float(diff.max())
         diffs.append(worst)
         if worst > threshold and first_over is None:
@@ -96,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.threshold >= 0:
         raise UsageError(f"--threshold must be >= 0, got {args.threshold:g}")
     path, recorded_sha = choose_policy(recording, args.policy)
-    policy = OnnxPolicy.load(path, policy_config(recording.meta))
+    policy = OnnxPolicy.load(path, policy_config(recording))
     size = recording.meta.get("frame_size")
     if size and [policy.spec.width, policy.spec.height] != list(size):
         print(f"jetbot-rt replay: {path} takes {policy.spec.width}x{policy.spec.height}, the "
@@ -118,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
                   f"|diff| {worst:.2e}{flag}")
 
     summary = replay(recording, policy, args.threshold, emit)
-    summary.update(policy_sha256=sha, same_policy=sha == recording.meta["policy"].get("sha256"))
+    summary.update(policy_sha256=sha,
+                   same_policy=sha == recording.meta.get("policy", {}).get("sha256"))
     if args.json:
         print(json.dumps(summary), flush=True)
         return EXIT_OK

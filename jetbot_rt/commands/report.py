@@ -3,25 +3,47 @@ with mu, duties and the tick's state drawn on them, a marker at a safe stop) and
 (mu, duties, tick time, frame age, overruns and events on one time axis) beside the recording,
 and prints the summary. On a bare telemetry JSONL file it writes ``<name>.png`` only.
 
+The recording is untrusted (``recording.py`` validates it) and so is the directory it sits in:
+each output is written to a new file created without following links and renamed into place
+once complete (``safe_file.replaced_file``), so a ``run.png`` planted as a link to another file
+is replaced, not written through. The video is bounded by the ticks: a pause longer than
+``MAX_GAP_S`` is shortened, and it stops at ``MAX_VIDEO_FRAMES``. An output that cannot be
+written (a full disk) is one line and exit 1: the recording was fine, the report was not made.
+
 matplotlib is imported only here, and only for the plot; the robot may not have it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
+import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from jetbot_rt import safe_file
 from jetbot_rt.errors import EXIT_OK, UsageError
 from jetbot_rt.recording import Recording
+from jetbot_rt.safe_file import shown
 
 DISPLAY_WIDTH = 448  # frames are enlarged by a whole factor to about this width (56 px by 8)
 PANEL = 120  # px of text and bars under the frame
 STOP_HOLD_S = 1.5  # the last frame with the stop marker stays this long at the end
+MAX_GAP_S = 10.0
+"""A pause between two ticks is shown at most this long: the longest a run can pause without
+its watchdog stopping it (``[loop] watchdog_timeout`` is at most 10 s)."""
+MAX_VIDEO_FRAMES = 108_000
+"""An hour at 30 Hz (a few GB of mp4v at most): the video stops there, saying so."""
+DISPLAY_LIMIT = 1e6
+"""mu is plotted clipped to this: a finite but huge value would overflow the axis range."""
+EXIT_NOT_WRITTEN = 1
+"""An output could not be written (disk full, no permission): not bad input (2)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +76,7 @@ def summarize(recording: Recording) -> dict[str, Any]:
         "frame_age_ms_p99": round(_percentile([r["frame_age_ms"] for r in ticks], 99), 3),
         "overruns": ticks[-1]["overruns"] if ticks else 0,
         "frames_missing": sum(1 for r in ticks if r.get("frame", 0) is None),
-        "stopped": stops[0]["reason"] if stops else (ends[0].get("reason") if ends else None),
+        "stopped": stops[0].get("reason") if stops else (ends[0].get("reason") if ends else None),
         "fault": bool(stops[0].get("fault")) if stops else None,
     }
     if recording.summary:
@@ -90,8 +112,9 @@ def print_summary(recording: Recording, summary: dict[str, Any]) -> None:
 # ---- plot ----------------------------------------------------------------------------------
 
 
-def plot(recording: Recording, out: Path) -> bool:
-    """run.png; False (and one line on stderr) when matplotlib is not installed."""
+def plot(recording: Recording, out_dir: Path, name: str) -> bool:
+    """``out_dir/name`` (a PNG); False (and one line on stderr) when matplotlib is not
+    installed. ``OSError`` when it cannot be written."""
     try:
         import matplotlib
 
@@ -106,7 +129,8 @@ def plot(recording: Recording, out: Path) -> bool:
     t = np.array([r["t"] for r in ticks])
     column = {key: np.array([r[key] for r in ticks], dtype=float)
               for key in ("tick_ms", "infer_ms", "frame_age_ms", "overruns")}
-    mu = np.array([r["mu"] for r in ticks], dtype=float).reshape(-1, 2)
+    mu = np.clip(np.array([r["mu"] for r in ticks], dtype=float).reshape(-1, 2),
+                 -DISPLAY_LIMIT, DISPLAY_LIMIT)
     cmd = np.array([r["cmd"] for r in ticks], dtype=float).reshape(-1, 2)
     fig, axes = plt.subplots(5, 1, figsize=(12, 10), sharex=True,
                              gridspec_kw={"height_ratios": [2, 2, 2, 1.5, 1]})
@@ -118,8 +142,8 @@ def plot(recording: Recording, out: Path) -> bool:
         (axes[4], [(column["overruns"], "overruns (total)")], "overruns"),
     ]
     for axis, series, label in rows:
-        for values, name in series:
-            axis.step(t, values, where="post", label=name, linewidth=1)
+        for values, legend in series:
+            axis.step(t, values, where="post", label=legend, linewidth=1)
         axis.set_ylabel(label)
         axis.grid(alpha=0.3)
         axis.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8)
@@ -147,11 +171,14 @@ def plot(recording: Recording, out: Path) -> bool:
     title = str(recording.path)
     if recording.meta:
         title += (f"  |  {recording.meta.get('backend')}, "
-                  f"{Path(recording.meta.get('policy', {}).get('path', '?')).name}")
+                  f"{Path(recording.meta.get('policy', {}).get('path') or '?').name}")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    try:
+        with safe_file.replaced_file(out_dir, name) as fd, os.fdopen(os.dup(fd), "wb") as file:
+            fig.savefig(file, format="png", dpi=100)
+    finally:
+        plt.close(fig)
     return True
 
 
@@ -183,7 +210,7 @@ def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
                                  interpolation=cv2.INTER_NEAREST)
     white = (230, 230, 230)
     text = (f"t {record['t']:7.2f} s  tick {record['tick']}  "
-            f"{'SAFE STOP' if stop else record.get('state', '')}")
+            f"{'SAFE STOP' if stop else str(record.get('state') or '')[:24]}")
     cv2.putText(canvas, text, (6, height + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, white, 1)
     mu, cmd = record["mu"], (stop.get("cmd", [0.0, 0.0]) if stop else record["cmd"])
     _bar(canvas, 6, height + 26, mu[0], "mu L")
@@ -204,65 +231,168 @@ def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
     return canvas
 
 
-def video(recording: Recording, out: Path) -> int:
+class Video:
     """run.mp4 at the recording's rate; a video frame shows the newest tick at its time, so
-    overruns and pauses last as long as they did. Returns the number of video frames."""
-    meta = recording.meta
-    fps = float(meta.get("rate_hz") or 30.0)
-    max_speed = float(meta.get("max_speed") or 0.1)
-    stops = [e for e in recording.events if e["event"] == "safe_stop"]
-    stop = stops[0] if stops else None
-    writer: Any = None
-    written = 0
-    slot_t: float | None = None
-    last: tuple[np.ndarray, dict[str, Any]] | None = None
+    overruns and pauses last as long as they did (a pause at most ``MAX_GAP_S``), up to
+    ``MAX_VIDEO_FRAMES``."""
 
-    def emit(image: np.ndarray, record: dict[str, Any], until: float, marked: bool) -> None:
-        nonlocal writer, written, slot_t
-        frame = compose(image, record, max_speed, stop if marked else None)
-        if writer is None:
-            writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), fps,
-                                     (frame.shape[1], frame.shape[0]))
-            if not writer.isOpened():
-                raise UsageError(f"cannot write {out}")
-        while slot_t is not None and slot_t < until:
-            writer.write(frame)
-            written += 1
-            slot_t += 1.0 / fps
+    def __init__(self, recording: Recording) -> None:
+        meta = recording.meta
+        self.recording = recording
+        self.fps = float(meta["rate_hz"])
+        self.max_speed = float(meta.get("max_speed") or 0.1)
+        stops = [e for e in recording.events if e["event"] == "safe_stop"]
+        self.stop = stops[0] if stops else None
+        self.writer: Any = None
+        self.written = 0
+        self.first: float | None = None  # the shown time of the first video frame
+        self.shortened = 0  # pauses shortened to MAX_GAP_S
+        self.cut = False  # stopped at MAX_VIDEO_FRAMES
 
-    for record, image in recording.ticks_with_frames():
-        if image is None and last is not None:
-            image = last[0]
-        if image is None:
-            continue
-        if slot_t is None:
-            slot_t = record["t"]
+    def write(self, out_dir: Path, name: str) -> bool:
+        """False when no tick has a frame (nothing written); ``OSError`` when the file cannot
+        be written, or turns out incomplete."""
+        try:
+            with safe_file.replaced_file(out_dir, name) as fd:
+                with safe_file.path_for_library(fd, ".mp4") as path:
+                    try:
+                        self._frames(path, fd)
+                    finally:
+                        if self.writer is not None:
+                            self.writer.release()
+                if not self.written:
+                    raise _NothingToShow
+                if not mp4_complete(fd):
+                    raise OSError(errno.EIO, "the file came out incomplete (disk full?)")
+        except _NothingToShow:
+            return False
+        return True
+
+    def _frames(self, path: str, fd: int) -> None:
+        offset = 0.0  # time cut out of long pauses so far
+        last: tuple[np.ndarray, dict[str, Any]] | None = None
+        for record, image in self.recording.ticks_with_frames():
+            if image is None and last is not None:
+                image = last[0]
+            if image is None:
+                continue
+            if last is not None and record["t"] - last[1]["t"] > MAX_GAP_S:
+                offset += record["t"] - last[1]["t"] - MAX_GAP_S
+                self.shortened += 1
+            shown_t = record["t"] - offset
+            if self.first is None:
+                self.first = shown_t
+            if last is not None:
+                self._emit(path, fd, last[0], last[1], shown_t, False)
+            last = (image, record)
+            if self.cut:
+                return
         if last is not None:
-            emit(last[0], last[1], record["t"], False)
-        last = (image, record)
-    if last is not None and slot_t is not None:
-        emit(last[0], last[1], last[1]["t"] + 1.0 / fps, False)
-        if stop is not None:
-            emit(last[0], last[1], slot_t + STOP_HOLD_S, True)
-    if writer is not None:
-        writer.release()
-    return written
+            end = last[1]["t"] - offset + 1.0 / self.fps
+            self._emit(path, fd, last[0], last[1], end, False)
+            if self.stop is not None:
+                self._emit(path, fd, last[0], last[1], self._slot() + STOP_HOLD_S, True)
+
+    def _slot(self) -> float:
+        assert self.first is not None
+        return self.first + self.written / self.fps
+
+    def _emit(self, path: str, fd: int, image: np.ndarray, record: dict[str, Any],
+              until: float, marked: bool) -> None:
+        frame = compose(image, record, self.max_speed, self.stop if marked else None)
+        if self.writer is None:
+            self.writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), self.fps,
+                                          (frame.shape[1], frame.shape[0]))
+            if not self.writer.isOpened():
+                raise OSError(errno.EIO, "OpenCV cannot write mp4v video here")
+        while self._slot() < until:
+            if self.written >= MAX_VIDEO_FRAMES:
+                self.cut = True
+                return
+            if self.written % 256 == 0:
+                disk = os.fstatvfs(fd)  # the video writer does not report a full disk
+                if disk.f_bavail * disk.f_frsize < MIN_FREE_BYTES:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            self.writer.write(frame)
+            self.written += 1
+
+
+MIN_FREE_BYTES = 4 * 1024 * 1024
+"""Less free space than this on the video's file system stops the video (ENOSPC)."""
+
+
+class _NothingToShow(Exception):
+    """No tick has a frame: the video is not made."""
+
+
+def mp4_complete(fd: int) -> bool:
+    """The MP4's top-level boxes tile the file exactly and include ``moov`` (written when the
+    writer is released): a write that failed on the way leaves it out or cut."""
+    size = os.fstat(fd).st_size
+    offset = 0
+    found = False
+    while offset < size:
+        header = os.pread(fd, 16, offset)
+        length = int.from_bytes(header[:4], "big") if len(header) >= 8 else 0
+        if length == 1 and len(header) == 16:
+            length = int.from_bytes(header[8:16], "big")
+        elif length == 0 and len(header) >= 8:
+            length = size - offset
+        if length < 8:
+            return False
+        found = found or header[4:8] == b"moov"
+        offset += length
+    return found and offset == size
+
+
+@contextlib.contextmanager
+def quiet_opencv() -> Iterator[None]:
+    """OpenCV's video writer warns once per frame it cannot write; the failure is reported
+    once, by ``Video.write``."""
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is None:
+        yield
+        return
+    level = logging.getLogLevel()
+    logging.setLogLevel(logging.LOG_LEVEL_ERROR)
+    try:
+        yield
+    finally:
+        logging.setLogLevel(level)
 
 
 def run(args: argparse.Namespace) -> int:
     recording = Recording.open(args.recording)
     if not recording.ticks:
-        raise UsageError(f"{args.recording}: no tick records in it")
+        raise UsageError(f"{shown(args.recording)}: no tick records in it")
     is_dir = bool(recording.meta)
     out_dir = Path(args.out) if args.out else (recording.path if is_dir else recording.path.parent)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    png = out_dir / ("run.png" if is_dir else recording.path.stem + ".png")
+    safe_file.text_path(out_dir, "--out")
+    png = "run.png" if is_dir else recording.path.stem + ".png"
     summary = summarize(recording)
     print_summary(recording, summary)
-    if plot(recording, png):
-        print(f"wrote {png}")
-    if is_dir and not args.no_video:
-        mp4 = out_dir / "run.mp4"
-        count = video(recording, mp4)
-        print(f"wrote {mp4} ({count} frames, {count / float(recording.meta['rate_hz']):.1f} s)")
+    target = out_dir
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        target = out_dir / png
+        if plot(recording, out_dir, png):
+            print(f"wrote {target}", flush=True)
+        if is_dir and not args.no_video:
+            target = out_dir / "run.mp4"
+            video = Video(recording)
+            with quiet_opencv():
+                made = video.write(out_dir, "run.mp4")
+            if not made:
+                print(f"no frames to show: {target} not written", flush=True)
+                return EXIT_OK
+            notes = "".join([
+                f"; {video.shortened} pauses over {MAX_GAP_S:g} s shortened to it"
+                if video.shortened else "",
+                f"; cut at {MAX_VIDEO_FRAMES} frames" if video.cut else ""])
+            print(f"wrote {target} ({video.written} frames, {video.written / video.fps:.1f} s"
+                  f"{notes})", flush=True)
+    except OSError as exc:
+        print(f"jetbot-rt report: error: cannot write {shown(target)}: "
+              f"{exc.strerror or exc}", file=sys.stderr, flush=True)
+        return EXIT_NOT_WRITTEN
     return EXIT_OK
