@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
+from jetbot_rt.safe_file import loads, open_regular, replaced_file
 
 SERVICE_DIR = Path("/run/jetbot-rt")
 TMP = Path("/tmp")
@@ -181,14 +182,8 @@ def write_board_record(i2c_bus: int, address: int, emulator: str | None) -> Path
               "emulator": os.path.abspath(emulator) if emulator else None}
     try:
         directory = private_dir()
-        tmp = directory / f".board-{os.getpid()}.tmp"
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)  # a crashed process of the same pid left it
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
-                     0o644)
-        with os.fdopen(fd, "w") as out:
-            json.dump(record, out)
-        os.replace(tmp, directory / RECORD_NAME)
+        with replaced_file(directory, RECORD_NAME, 0o644) as fd:
+            os.write(fd, json.dumps(record).encode())
     except (OSError, UsageError):
         return None
     return directory / RECORD_NAME
@@ -302,15 +297,10 @@ def _read_record(path: Path, owners: tuple[int, ...]) -> BoardRecord:
     config validates ``[motors]``. Raises ``UsageError`` saying what is wrong."""
     from jetbot_rt.config import MotorsConfig, set_value
 
+    fd = open_regular(path, "board record", follow_links=False)
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY
-                     | os.O_CLOEXEC)
-    except OSError as exc:
-        raise UsageError(exc.strerror or str(exc)) from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode) or st.st_uid not in owners:
-            raise UsageError("not a regular file of this user or root")
+        if os.fstat(fd).st_uid not in owners:
+            raise UsageError("not this user's or root's")
         data = os.read(fd, MAX_RECORD_BYTES + 1)
     except OSError as exc:
         raise UsageError(exc.strerror or str(exc)) from None
@@ -319,15 +309,20 @@ def _read_record(path: Path, owners: tuple[int, ...]) -> BoardRecord:
     if len(data) > MAX_RECORD_BYTES:
         raise UsageError(f"larger than {MAX_RECORD_BYTES} bytes")
     try:
-        record = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError):
-        raise UsageError("not JSON") from None
+        record = loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise UsageError(f"not JSON: {exc}") from None
     if not isinstance(record, dict) or not {"i2c_bus", "address"} <= set(record) \
             or not set(record) <= _RECORD_KEYS:
         raise UsageError(f"not a board record (keys: {', '.join(sorted(_RECORD_KEYS))})")
+    if type(record.get("pid", 0)) is not int:
+        raise UsageError("pid must be an integer")
     motors = MotorsConfig()
     for key in ("i2c_bus", "address", "emulator"):
-        set_value(motors, "motors", key, record.get(key))
+        try:  # the checks of [motors], the same ranges and types
+            set_value(motors, "motors", key, record.get(key))
+        except UsageError as exc:
+            raise UsageError(str(exc).replace("[motors] ", "", 1)) from None
     emulator = motors.emulator
     if emulator is not None:
         try:
@@ -335,14 +330,15 @@ def _read_record(path: Path, owners: tuple[int, ...]) -> BoardRecord:
         except (OSError, ValueError):  # ValueError: a NUL in the name
             usable = False
         if not usable:
-            raise UsageError("its emulator state file is not a regular file any more")
+            raise UsageError(f"emulator {emulator!r} is not an absolute path to a regular "
+                             "file (any more)")
     return BoardRecord(motors.i2c_bus, motors.address, emulator, path)
 
 
 def read_board_record() -> tuple[BoardRecord | None, str | None]:
     """The first valid board record in ``search_dirs()``, or None and why none."""
     found = search()
-    whys = []
+    whys = [entry for entry in found.ignored if f"/{RECORD_NAME} (" in entry]
     for path, dir_owner in found.records:
         try:
             return _read_record(path, (os.geteuid(), 0, dir_owner)), None

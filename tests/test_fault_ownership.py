@@ -210,6 +210,42 @@ def test_stop_names_a_process_it_cannot_defeat(tmp_path: Path, behaviour: str) -
     assert chip.all_off() and chip.sleeping
 
 
+@needs_gst
+def test_execstoppost_with_an_unreadable_config_finds_the_board_the_runtime_recorded(
+        tmp_path: Path) -> None:
+    """The runtime drives the board its config names (bus 4, 0x41) and is killed (SIGKILL:
+    nothing of its own runs); then its config is replaced by one that cannot be read. The
+    ExecStopPost ``stop``, given only that config (no ``--board-emulator``), turns off the
+    board the runtime recorded when it took it (issue 25: it fell back to bus 1 at 0x60 and
+    reported a false failure)."""
+    mark = f"fm{uuid.uuid4().hex[:12]}"
+    policy = policy_models.constant(tmp_path / "policy.onnx", MU)
+    rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(
+        live_camera(mark), motors="i2c_bus = 4\naddress = 0x41") + LOOP)
+    from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
+
+    rt.chip_file.unlink()
+    rt.chip = PCA9685Emulator(0x41, state_file=rt.chip_file)
+    try:
+        rt.start()
+        rt.wait_ticks(10)
+        assert not rt.board_off()
+        os.kill(rt.pid, signal.SIGKILL)
+        rt.finish(30)
+    finally:
+        rt.kill()
+    assert not rt.board_off(), "nothing turned the board off: the case ExecStopPost is for"
+    rt.config.write_bytes(b"[motors]\ni2c_bus = \xff\n")
+    stop = subprocess.run([JETBOT_RT, "stop", "--config", str(rt.config)], capture_output=True,
+                          text=True, env=rt.env, timeout=30)
+    assert stop.returncode == 2, stop.stdout + stop.stderr  # the config is still bad
+    line = one_line(stop.stderr)
+    assert "not UTF-8" in line and "using the board the runtime recorded in" in line, line
+    assert "motor outputs off (I2C bus 4 address 0x41)" in stop.stdout
+    assert rt.board_off() and rt.chip.sleeping
+    assert_no_gst_left(mark)
+
+
 # ---- class 3: one owner per bus -----------------------------------------------------------
 
 
