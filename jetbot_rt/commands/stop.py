@@ -59,26 +59,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _motors(path: str | None) -> tuple[MotorsConfig, str | None]:
-    """The config's [motors], or the defaults and why; never raises."""
+    """The config's [motors]; if the config cannot be read, the board the last runtime
+    recorded, else the defaults, and why. Never raises."""
     try:
         return load_config(path).motors, None
     except UsageError as exc:
-        return MotorsConfig(), str(exc)
+        error = str(exc)
     except Exception as exc:  # the stop must go out whatever the config holds
-        return MotorsConfig(), f"config {path}: {type(exc).__name__}: {first_line(exc)}"
-
-
-def _recorded_motors() -> tuple[MotorsConfig, str]:
-    """The board the last runtime recorded, or the defaults; and which, for the user."""
-    try:
-        record, why = read_board_record()
-    except Exception as exc:  # the stop must go out whatever the directory holds
-        record, why = None, f"{type(exc).__name__}: {first_line(exc)}"
+        error = f"config {path}: {type(exc).__name__}: {first_line(exc)}"
+    record, why = read_board_record()  # never raises: every problem is a reason
     if record is None:
-        return MotorsConfig(), f"using the default bus and address ({why})"
+        return MotorsConfig(), f"{error}; using the default bus and address ({why})"
     motors = MotorsConfig(i2c_bus=record.i2c_bus, address=record.address,
                           emulator=record.emulator)
-    return motors, f"using the board the runtime recorded in {record.path}"
+    return motors, f"{error}; using the board the runtime recorded in {record.path}"
 
 
 def _write_stop(motors: MotorsConfig, write: Callable[[I2CBus, int], None]) -> str | None:
@@ -118,14 +112,10 @@ def _listed(items: list[str]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    # This is systemd's ExecStopPost: a config edited while the service ran must not stop
+    # the stop. The board the runtime recorded, else the defaults; and say so.
     motors, config_error = _motors(args.config)
-    exit_code = 0
-    if config_error is not None:
-        # This is systemd's ExecStopPost: a config edited while the service ran must not
-        # stop the stop. The board the runtime recorded, else the defaults; and say so.
-        motors, which = _recorded_motors()
-        config_error = f"{config_error}; {which}"
-        exit_code = EXIT_USAGE
+    exit_code = 0 if config_error is None else EXIT_USAGE
     if args.board_emulator:  # the harness's board, whatever the config says or failed to say
         motors = dataclasses.replace(motors, emulator=args.board_emulator)
     if motors.emulator:
