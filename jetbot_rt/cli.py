@@ -13,7 +13,7 @@ import importlib
 import sys
 from typing import Any
 
-from jetbot_rt import __version__, signals
+from jetbot_rt import __version__, console, signals
 from jetbot_rt.errors import EXIT_USAGE, UsageError
 from jetbot_rt.extras import sim_problem
 
@@ -77,27 +77,38 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
 NEVER_INTERRUPTED = {"stop"}
 """Commands a signal never cuts short: ``stop`` (systemd's ExecStopPost, an operator's last
 resort) finishes writing the stop, then exits with its own code; SIGKILL still ends it."""
+NEVER_BLOCKED = {"run", "stop", "check"}
+"""Commands that touch the motor board: their stdout and stderr never block (a pipe nobody
+reads, a terminal stopped by Ctrl-S, a stalled journald), ``jetbot_rt.console``. The others
+(report, replay...) print as Python does: a reader that is slow is waited for."""
 
 
 def main(argv: list[str] | None = None) -> int:
     # First: a signal during the imports, the config or the model load ends the command in
     # order (one line, exit 0), not with a KeyboardInterrupt traceback or a silent death.
     # ``jetbot-rt run`` replaces this with its safe-stop handlers before it opens the board.
-    command = next((a for a in (sys.argv[1:] if argv is None else argv)
-                    if not a.startswith("-")), "")
+    command = _command(sys.argv[1:] if argv is None else argv)
     holding = (signals.deferred(raise_after=False) if command in NEVER_INTERRUPTED
                else contextlib.nullcontext())
-    try:
-        with holding:
-            signals.install(signals.raise_interrupted)
-            return _main(argv)
-    except signals.Interrupted as exc:
-        return _stopped_by(command, str(exc))
-    except Exception:
-        signum = signals.raised_first()
-        if signum is None:
-            raise
-        return _stopped_by(command, signals.name(signum))  # the error replaced the Interrupted
+    with console.unblocked(command in NEVER_BLOCKED):
+        try:
+            with holding:
+                signals.install(signals.raise_interrupted)
+                return _main(argv)
+        except signals.Interrupted as exc:
+            return _stopped_by(command, str(exc))
+        except Exception:
+            signum = signals.raised_first()
+            if signum is None:
+                raise
+            return _stopped_by(command, signals.name(signum))  # the error replaced Interrupted
+
+
+def _command(argv: list[str]) -> str:
+    """The subcommand ``argv`` names (``run`` for ``jetbot-rt --backend sim``), or ""."""
+    if argv and argv[0].startswith("--") and argv[0] not in ("--help", "--version"):
+        return "run"
+    return next((a for a in argv if not a.startswith("-")), "")
 
 
 def _stopped_by(command: str, name: str) -> int:

@@ -5,6 +5,9 @@ tick's result goes to its observers (telemetry, the recorder, the service notifi
 
 A tick that ends past its successor's deadline skips the missed ticks and counts them: the
 loop never bursts to catch up, so a slow moment never turns into a rush of stale commands.
+
+A frame's age is the camera's to say (``Camera.frame_age``): on hardware the wall time since
+it arrived, on the sim the simulated time since it was rendered.
 """
 
 from __future__ import annotations
@@ -237,12 +240,12 @@ class ControlLoop:
         frame = self.robot.camera.read()
         if frame is None:
             raise Fault("camera delivered no frame")
-        frame_age = t_start - frame.t_capture
+        frame_age = self.robot.camera.frame_age(frame, t_start)
         max_age = self.schedule.max_frame_age
         if frame_age > max_age:
             raise Fault(
-                f"stale frame: {frame_age * 1e3:.0f} ms old (max_frame_age "
-                f"{max_age * 1e3:.0f} ms)"
+                f"stale frame: {frame_age * 1e3:.0f} ms old (limit [loop] max_frame_age = "
+                f"{max_age:.3g} s)"
             )
         t_infer = self.clock()
         mu = self.policy.infer(frame.image)

@@ -110,7 +110,7 @@ def test_missing_device_node_names_the_os_error_in_words() -> None:
 def test_defaults_three_retries_and_the_emulator_at_0x60(tmp_path) -> None:
     chip = PCA9685Emulator(0x60)
     chip.fail_next = 4
-    with pytest.raises(I2CFault, match=r"\(after 4 attempts\)"):
+    with pytest.raises(I2CFault, match=r"\(after 4 attempts, \[motors\] i2c_retries = 3\)"):
         I2CBus(chip, 1).writeto(0x60, bytes((MODE1, 0x20)))
     chip.fail_next = 3
     I2CBus(chip, 1).writeto(0x60, bytes((MODE1, 0x20)))

@@ -130,3 +130,40 @@ def test_observers_see_each_tick_as_telemetry_records_it(tmp_path):
         assert result.record(telemetry.t0) == record
         assert result.image.shape == (224, 224, 3) and result.image.dtype == np.uint8
     assert seen[0].mu == [0.5, -0.25] and seen[0].cmd == (0.05, -0.025)
+
+
+class CameraWithItsOwnClock(NullCamera):
+    """Frames that arrive fresh on the wall clock, aged by a clock of the camera's own (the
+    sim's simulated time): the camera says how old a frame is, not the wall clock."""
+
+    def __init__(self, ages):
+        super().__init__()
+        self.ages = ages
+        self.asked = []
+
+    def frame_age(self, frame, now):
+        self.asked.append(now)
+        return self.ages[min(len(self.asked), len(self.ages)) - 1]
+
+
+def test_the_camera_says_how_old_a_frame_is():
+    camera = CameraWithItsOwnClock([0.0, 0.05, 0.1, 0.25])
+    loop, latch, drive, _ = make_loop(ScriptedPolicy([[1.0, 1.0]]), camera=camera)
+    loop.run(duration=5.0)
+    assert latch.fault
+    # the 4th frame, 0.25 s old by the camera's clock, is the first over max_frame_age 0.1 s
+    assert loop.stats.ticks == 3 and len(camera.asked) == 4
+    assert latch.reason == "stale frame: 250 ms old (limit [loop] max_frame_age = 0.1 s)"
+    assert drive.last == (0.0, 0.0)
+
+
+def test_a_frame_old_on_the_wall_clock_is_fresh_if_its_camera_says_so():
+    class OldOnTheWallClock(CameraWithItsOwnClock):
+        def read(self):
+            frame = super().read()
+            return type(frame)(frame.image, frame.t_capture - 10.0, frame.index)
+
+    loop, latch, _, _ = make_loop(ScriptedPolicy([[1.0, 1.0]]), camera=OldOnTheWallClock([0.0]))
+    loop.run(duration=0.2)
+    assert not latch.fault, latch.reason
+    assert loop.stats.ticks >= 2

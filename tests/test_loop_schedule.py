@@ -246,5 +246,5 @@ class TestStaleFrameReason:
         )
         loop.run(duration=4 * PERIOD)
         assert latch.fault
-        assert latch.reason == "stale frame: 375 ms old (max_frame_age 250 ms)"
+        assert latch.reason == "stale frame: 375 ms old (limit [loop] max_frame_age = 0.25 s)"
         assert loop.stats.ticks == 0 and chip.all_off()

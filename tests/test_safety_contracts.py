@@ -7,6 +7,8 @@ the watchdog runs its real thread on a clock the test moves by hand.
 from __future__ import annotations
 
 import threading
+import time
+from collections.abc import Callable
 
 import pytest
 
@@ -188,7 +190,8 @@ class TestWatchdogOnAManualClock:
         finally:
             watchdog.close()
         assert latch.fault
-        assert latch.reason == "watchdog: no tick for 0.250 s (timeout 0.250 s)"
+        assert latch.reason == ("watchdog: no tick for 0.250 s "
+                                "(limit [loop] watchdog_timeout = 0.25 s)")
         assert chip.all_off()
 
     def test_the_silence_named_is_measured_from_the_last_kick(self) -> None:
@@ -200,7 +203,8 @@ class TestWatchdogOnAManualClock:
             assert latch.wait(LIVENESS_S)
         finally:
             watchdog.close()
-        assert latch.reason == "watchdog: no tick for 3.500 s (timeout 0.250 s)"
+        assert latch.reason == ("watchdog: no tick for 3.500 s "
+                                "(limit [loop] watchdog_timeout = 0.25 s)")
 
     def test_start_counts_from_the_start_not_from_construction(self) -> None:
         clock, latch, watchdog, _chip = self.make()
@@ -213,7 +217,8 @@ class TestWatchdogOnAManualClock:
             assert latch.wait(LIVENESS_S)
         finally:
             watchdog.close()
-        assert latch.reason == "watchdog: no tick for 0.250 s (timeout 0.250 s)"
+        assert latch.reason == ("watchdog: no tick for 0.250 s "
+                                "(limit [loop] watchdog_timeout = 0.25 s)")
 
     def test_a_closed_watchdog_never_trips_and_its_thread_ends(self) -> None:
         clock, latch, watchdog, chip = self.make()
@@ -259,3 +264,191 @@ class TestAnUntrippedLatch:
         assert (latch.tripped, latch.reason, latch.t_trip, latch.fault) == (False, None, None,
                                                                             False)
         assert not latch.wait(0)
+
+
+# ---- a zero write that fails: tried again for a bounded time, and said ---------------------
+
+BURST_ERROR = ("I2CFault: I2C bus 1 address 0x60: Remote I/O error (after 4 attempts, "
+               "[motors] i2c_retries = 3)")
+
+
+class SteppingClock:
+    """A clock that moves 1/64 s each time it is read: the retry window is counted in reads,
+    the same on a loaded machine as on an idle one (1/64 is exact in binary)."""
+
+    STEP = 1 / 64
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        self.now += self.STEP
+        return self.now
+
+
+RETRY_S = 17 / 64
+"""A failed zero write reads the clock twice: the 9th ends exactly 17 steps after the 1st
+began, so the window is over there (and not one write later)."""
+WRITES_IN_WINDOW = 9
+
+
+def stepping_drive() -> tuple[PCA9685Emulator, SafeStopLatch, GuardedDrive]:
+    chip, drive = emulated_drive()
+    latch = SafeStopLatch()
+    guarded = GuardedDrive(drive, latch, retry_s=RETRY_S, clock=SteppingClock())
+    assert guarded.zero_confirmed is None and guarded.motors_line() is None
+    assert guarded.write(0.5, -0.5)
+    assert guarded.zero_confirmed is False  # a motor may turn
+    return chip, latch, guarded
+
+
+class TestAZeroWriteThatFailsIsTriedAgain:
+    """An I2C error burst longer than the bus's retries (1 + 3 transfers per zero write) must
+    not leave the wheels at their last duty: the stop keeps writing zero until the board takes
+    it or ``retry_s`` has passed, and says which."""
+
+    @pytest.mark.parametrize("burst", [20, 60])
+    def test_a_burst_longer_than_the_retries_ends_at_zero_and_is_said(self, burst: int) -> None:
+        chip, drive = emulated_drive()
+        latch = SafeStopLatch()
+        guarded = GuardedDrive(drive, latch)  # the runtime's: STOP_RETRY_S, the real clock
+        assert guarded.write(0.5, -0.5)
+        chip.fail_next = burst
+        assert latch.trip("I2C burst")
+        assert chip.all_off(), chip.duties()
+        assert chip.fail_next == 0
+        assert guarded.zero_confirmed is True
+        assert guarded.stop_errors == []
+        line = guarded.motors_line()
+        assert line is not None
+        assert line.startswith(f"confirmed zero after {burst // 4} failed zero writes in "), line
+        # the latch holds: nothing but zero from now on
+        assert not guarded.write(0.4, 0.4)
+        assert chip.all_off()
+
+    def test_a_bus_that_never_comes_back_is_tried_for_the_window_and_not_confirmed(self) -> None:
+        chip, latch, guarded = stepping_drive()
+        chip.absent = True
+        assert latch.trip("bus gone")
+        assert not chip.all_off(), "the board cannot have been reached"
+        assert guarded.failed_stops == WRITES_IN_WINDOW
+        assert guarded.zero_confirmed is False
+        assert guarded.motors_line() == (
+            f"NOT confirmed zero after {WRITES_IN_WINDOW} failed zero writes in "
+            f"{RETRY_S:.2f} s: {BURST_ERROR}")
+        assert guarded.stop_errors == [BURST_ERROR]
+        # the window is over: a later stop (the exit path's) tries once, and says it once
+        guarded.stop()
+        assert guarded.failed_stops == WRITES_IN_WINDOW + 1
+        assert guarded.stop_errors == [BURST_ERROR]
+        # the bus is back: the next stop reaches the board and says what it took
+        chip.absent = False
+        guarded.stop()
+        assert chip.all_off(), chip.duties()
+        assert guarded.zero_confirmed is True and guarded.failed_stops == 0
+        line = guarded.motors_line()
+        assert line is not None
+        assert line.startswith(f"confirmed zero after {WRITES_IN_WINDOW + 1} failed zero "
+                               "writes in "), line
+        assert not guarded.write(0.1, 0.1)
+
+    def test_a_working_write_between_two_failing_stops_opens_a_new_window(self) -> None:
+        chip, _latch, guarded = stepping_drive()
+        chip.absent = True
+        guarded.stop()  # not latched: the drive stays usable
+        assert guarded.failed_stops == WRITES_IN_WINDOW
+        chip.absent = False
+        assert guarded.write(0.2, 0.2)
+        assert guarded.failed_stops == 0 and guarded.zero_confirmed is False
+        chip.absent = True
+        guarded.stop()
+        assert guarded.failed_stops == WRITES_IN_WINDOW, "the new failures got no window"
+
+    def test_a_zero_the_board_took_stays_confirmed_and_is_not_insisted_on(self) -> None:
+        chip, latch, guarded = stepping_drive()
+        assert latch.trip("test")
+        assert guarded.zero_confirmed is True and guarded.motors_line() == "confirmed zero"
+        chip.absent = True  # the board stops answering: what it last got from us was zero
+        guarded.stop()
+        assert guarded.failed_stops == 1, "it insisted on a zero the board already had"
+        assert guarded.zero_confirmed is True and guarded.motors_line() == "confirmed zero"
+        assert guarded.stop_errors == [BURST_ERROR]
+
+    def test_a_drive_whose_first_zero_fails_is_not_confirmed(self) -> None:
+        chip, drive = emulated_drive()
+        guarded = GuardedDrive(drive, SafeStopLatch(), retry_s=RETRY_S, clock=SteppingClock())
+        chip.absent = True
+        guarded.stop()
+        assert guarded.zero_confirmed is False
+        assert (guarded.motors_line() or "").startswith("NOT confirmed zero after 9 ")
+
+    def test_a_stop_while_another_retries_waits_for_it_instead_of_going_around_it(
+            self) -> None:
+        chip, drive = emulated_drive()
+        latch = SafeStopLatch()
+        guarded = GuardedDrive(drive, latch, retry_s=0.5)
+        assert guarded.write(0.5, 0.5)
+        chip.absent = True
+        tripper = threading.Thread(target=latch.trip, args=("bus gone",), daemon=True)
+        tripper.start()
+        assert wait_until(lambda: guarded.failed_stops >= 1)
+        guarded.stop()  # the exit path's stop, while the trip's still retries
+        tripper.join(LIVENESS_S)
+        assert not tripper.is_alive()
+        assert "a drive write in flight did not return; stopped anyway" not in \
+            guarded.stop_errors, guarded.stop_errors
+        assert guarded.zero_confirmed is False
+
+
+def wait_until(predicate: Callable[[], bool]) -> bool:
+    deadline = time.monotonic() + LIVENESS_S
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.001)
+    return True
+
+
+class LandingHangingDrive(HangingWriteDrive):
+    """A write stuck in the driver that, once released, does reach the board: late. With
+    ``vanish``, the board stops answering right after it."""
+
+    def __init__(self, bus: I2CBus, chip: PCA9685Emulator, vanish: bool) -> None:
+        super().__init__(bus)
+        self.chip = chip
+        self.vanish = vanish
+
+    def write(self, left: float, right: float) -> None:
+        hung = self.hang.is_set()
+        if hung:
+            self.in_write.set()
+            self.release.wait(LIVENESS_S)
+        WaveshareDrive.write(self, left, right)
+        self.chip.absent = hung and self.vanish
+
+
+@pytest.mark.parametrize("vanish", [False, True], ids=["bus-works", "bus-gone-after-it"])
+def test_a_write_that_lands_after_the_stop_it_did_not_wait_for_is_zeroed_again(
+        vanish: bool) -> None:
+    chip = PCA9685Emulator(0x60)
+    drive = LandingHangingDrive(I2CBus(chip, 1), chip, vanish)
+    latch = SafeStopLatch()
+    guarded = GuardedDrive(drive, latch, retry_s=RETRY_S, clock=SteppingClock())
+    assert guarded.write(0.5, -0.5)
+    drive.hang.set()
+    writer = threading.Thread(target=guarded.write, args=(0.6, 0.6), daemon=True)
+    writer.start()
+    assert drive.in_write.wait(LIVENESS_S)
+    latch.trip("test")  # its stop goes out around the hung write
+    assert chip.all_off() and guarded.zero_confirmed is True
+    drive.hang.clear()
+    drive.release.set()
+    writer.join(LIVENESS_S)
+    assert not writer.is_alive()
+    if vanish:  # the late write is on the board and no zero can follow it: said so
+        assert not chip.all_off()
+        assert guarded.zero_confirmed is False
+        assert (guarded.motors_line() or "").startswith("NOT confirmed zero after 9 ")
+    else:
+        assert chip.all_off(), f"the late write stayed on the board: {chip.duties()}"
+        assert guarded.zero_confirmed is True

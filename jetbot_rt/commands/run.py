@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Callable, TypeVar
 
 import numpy as np
 
-from jetbot_rt import signals
+from jetbot_rt import console, signals
 from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.commands.shutdown import Shutdown
 from jetbot_rt.config import Config, load_config, set_value
@@ -178,7 +178,7 @@ class Runtime:
                 # (SIGABRT, "terminate called without an active exception"): say it as the CLI
                 # would, leave.
                 print(f"jetbot-rt run: error: {exc}", file=sys.stderr, flush=True)
-                sys.stdout.flush()
+                console.drain()  # bounded: a stalled reader costs the line, not the exit
                 os._exit(EXIT_USAGE)
             raise
         except Exception as exc:  # a bug or an unforeseen OS error: still a safe stop, one line
@@ -201,8 +201,7 @@ class Runtime:
         (a load, a warm-up or a tick): the interpreter's shutdown could wait on it or abort
         ("terminate called without an active exception"). The motors are zero by now."""
         if self._stuck():
-            sys.stdout.flush()
-            sys.stderr.flush()
+            console.drain()  # bounded: a stalled reader costs the summary, not the exit
             os._exit(result.exit_code)
         return result
 
@@ -344,7 +343,7 @@ class Runtime:
             robot.step(self.config.loop.period)
             slowest = max(slowest, time.perf_counter() - t0)
         loop_cfg = self.config.loop
-        if 5 * slowest > loop_cfg.watchdog_timeout_s:
+        if 5 * slowest > loop_cfg.watchdog_timeout_for(robot.simulated):
             loop_cfg.watchdog_timeout = 5 * slowest
             print(f"--gui: a simulation step takes up to {slowest * 1e3:.0f} ms here, so the "
                   f"simulation runs slower than real time; watchdog timeout "
@@ -354,7 +353,10 @@ class Runtime:
               warmup_ms: float) -> RunResult:
         """The loop in its own thread, supervised from this one until the latch trips."""
         loop_cfg = self.config.loop
-        watchdog = Watchdog(self.latch, loop_cfg.watchdog_timeout_s)
+        # The sim's default is longer (config.SIM_WATCHDOG_MIN_S): a simulated world stands
+        # still while the process is not scheduled, so a desktop's hiccup is no fault there.
+        watchdog_timeout = loop_cfg.watchdog_timeout_for(connected.robot.simulated)
+        watchdog = Watchdog(self.latch, watchdog_timeout)
         self.shutdown.watchdog(watchdog)
         observers: list[Callable[[TickResult], None]] = []
         if notifier.active:
@@ -373,7 +375,7 @@ class Runtime:
         self.telemetry.event(
             "start", backend=self.args.backend, policy=loaded.policy.describe(),
             rate_hz=loop_cfg.rate_hz, max_speed=loaded.actions.max_speed,
-            watchdog_timeout_s=loop_cfg.watchdog_timeout_s,
+            watchdog_timeout_s=watchdog_timeout,
             max_frame_age_s=self.config.max_frame_age_s, warmup_ms=round(warmup_ms, 3),
             board_emulator=self.config.motors.emulator,
         )

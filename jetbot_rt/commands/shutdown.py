@@ -49,6 +49,9 @@ class Summary:
     counts: dict[str, float] = field(default_factory=dict)
     """The robot's ``stats()`` (``i2c_retried``; the sim's ``travelled_m``, ``goal_distance_m``)."""
     writes_refused: int = 0
+    motors: str | None = None
+    """Whether the board confirmed the final zero (``GuardedDrive.motors_line``)."""
+    motors_confirmed: bool | None = None
     stop_errors: list[str] = field(default_factory=list)
     telemetry_lost: int = 0
     recording: dict[str, Any] | None = None
@@ -61,6 +64,9 @@ class Summary:
         out.update(self.counts)
         if self.writes_refused:
             out["writes_refused"] = self.writes_refused  # late writes the latch blocked
+        if self.motors is not None:
+            out["motors"] = self.motors
+            out["motors_confirmed_zero"] = self.motors_confirmed
         if self.stop_errors:
             out["stop_errors"] = self.stop_errors
         if self.telemetry_lost:
@@ -90,6 +96,8 @@ class Summary:
             lines.append(f"  recording    {recording_line(self.recording)}")
         for error in self.stop_errors:
             lines.append(f"  stop error   {error}")
+        if self.motors is not None:
+            lines.append(f"  motors       {self.motors}")
         lines.append(f"  stopped      {self.reason}")
         lines.append(f"  exit code    {self.exit_code}")
         return "\n".join(lines)
@@ -166,6 +174,11 @@ class Shutdown:
         for drive in self._drives:
             summary.writes_refused += drive.refused
             summary.stop_errors += drive.stop_errors
+            summary.motors = drive.motors_line()
+            summary.motors_confirmed = drive.zero_confirmed
+            if drive.zero_confirmed is False:
+                # Not an orderly end, whatever ended the run: the wheels may still turn.
+                summary.exit_code = EXIT_SAFE_STOP
         summary.telemetry_lost = telemetry.lost
         for recorder in self._recorders:
             summary.recording = recorder.close(summary.fields())

@@ -43,6 +43,11 @@ class Camera(abc.ABC):
     def stop(self) -> None:
         """Stop capturing and release everything (child processes included). Idempotent."""
 
+    def frame_age(self, frame: Frame, now: float) -> float:
+        """How old ``frame`` is at ``now`` (``time.monotonic()``), as ``[loop] max_frame_age``
+        judges it: the time the world could move since the image was taken."""
+        return now - frame.t_capture
+
 
 class Drive(abc.ABC):
     """Two wheels. Duties are in [-1, 1]; positive drives the robot forward."""

@@ -215,7 +215,8 @@ class I2CBus:
                 if attempt == attempts:
                     raise I2CFault(
                         f"I2C bus {self.bus_number} address 0x{address:02x}: "
-                        f"{exc.strerror or exc} (after {attempts} attempts)"
+                        f"{exc.strerror or exc} (after {attempts} attempts, "
+                        f"[motors] i2c_retries = {self.retries})"
                     ) from exc
                 self.retried += 1
                 time.sleep(RETRY_DELAY_S * attempt)

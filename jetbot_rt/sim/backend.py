@@ -5,12 +5,18 @@ tick's timing: the world steps one control period and the camera renders the fra
 tick will read. The
 camera's fault injection (``[sim] camera_stall_after``, ``[sim] blackout``) runs on simulated
 time, so a run with faults replays identically.
+
+A frame's age (``[loop] max_frame_age``) is simulated time too: what the limit guards against
+is the world moving on while the policy looks at an old image, and a simulated world stands
+still while the process is not scheduled (a desktop's hiccup is no stale frame here). A frozen
+camera (``camera_stall_after``) still ages one period per tick.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -25,6 +31,13 @@ if TYPE_CHECKING:
     from jetbot_rt.hal.registry import BackendOptions
 
 
+@dataclass(frozen=True)
+class SimFrame(Frame):
+    """A rendered frame and the simulated time at which it was rendered."""
+
+    sim_time: float = 0.0
+
+
 class SimCamera(Camera):
     """The robot's camera. ``read()`` returns the newest rendered frame without rendering;
     ``capture()`` (called by the backend after each world step) renders the next one."""
@@ -33,7 +46,7 @@ class SimCamera(Camera):
         self._world = world
         self._stall_after = sim.camera_stall_after
         self._blackout = sim.blackout
-        self._frame: Frame | None = None
+        self._frame: SimFrame | None = None
         self._count = 0
         self._running = False
 
@@ -53,10 +66,16 @@ class SimCamera(Camera):
         else:
             image = self._world.frame()
         self._count += 1
-        self._frame = Frame(image, time.monotonic(), self._count)
+        self._frame = SimFrame(image, time.monotonic(), self._count, t)
 
     def read(self) -> Frame | None:
         return self._frame if self._running else None
+
+    def frame_age(self, frame: Frame, now: float) -> float:
+        """Simulated seconds since ``frame`` was rendered (``now``, wall time, is not used)."""
+        if isinstance(frame, SimFrame):
+            return self._world.sim_time - frame.sim_time
+        return super().frame_age(frame, now)
 
     def stop(self) -> None:
         self._running = False
