@@ -135,7 +135,10 @@ def _make_private(path: Path) -> str | None:
     try:
         st = os.fstat(fd)
         if st.st_uid != os.geteuid():
-            return None if _service_dir_is_roots(path) else f"owned by uid {st.st_uid}"
+            if not _service_dir_is_roots(path):
+                return f"owned by uid {st.st_uid}"
+            return f"writable by others (mode {stat.S_IMODE(st.st_mode):04o})" \
+                if st.st_mode & 0o022 else None
         if stat.S_IMODE(st.st_mode) != 0o700:
             os.fchmod(fd, 0o700)  # ours: nobody else may list or write it
     finally:

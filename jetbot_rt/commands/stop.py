@@ -130,8 +130,8 @@ def run(args: argparse.Namespace) -> int:
     if config_error is not None:
         print(f"jetbot-rt stop: {config_error}", file=sys.stderr)
     if reply.ignored:
-        print(f"jetbot-rt stop: ignored, not this user's or root's: {_listed(reply.ignored)}",
-              file=sys.stderr)
+        # another user's directory or socket, a link, or more than asked at most: never used
+        print(f"jetbot-rt stop: ignored: {_listed(reply.ignored)}", file=sys.stderr)
     if error is None:
         error = _confirm(motors)
     if error is not None:
