@@ -16,8 +16,6 @@ from pathlib import Path
 import pytest
 from hostile_user import needs_root, unused_uid
 
-from jetbot_rt.hal.i2c import I2CBus
-from jetbot_rt.hal.motors import WaveshareDrive
 from jetbot_rt.hal.ownership import BoardLock
 from jetbot_rt.runtime_dir import MAX_RECORD_BYTES, RECORD_NAME, read_board_record
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
@@ -153,31 +151,12 @@ def test_fuzzed_records_never_raise_and_only_valid_ones_are_used(run_dir: Path,
     assert used < 400
 
 
-# ---- jetbot-rt stop with a config it cannot read ------------------------------------------
+# ---- jetbot-rt stop with a config it cannot read (the good record: tests/test_stop.py) ------
 
 
 def stop(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "jetbot_rt.cli", "stop", *args],
                           capture_output=True, text=True, timeout=30)
-
-
-def test_stop_with_an_unreadable_config_uses_the_recorded_board(run_dir: Path,
-                                                                tmp_path: Path) -> None:
-    """No ``--board-emulator``: the bus, address and board come from the record alone (the
-    defaults, bus 1 at 0x60, have no board here, so a stop on them could not confirm)."""
-    chip_file = tmp_path / "chip.json"
-    chip = PCA9685Emulator(0x41, state_file=chip_file)
-    BoardLock.acquire(4, str(chip_file), 0x41).release()
-    WaveshareDrive(I2CBus(chip, 4), 0x41, 1600.0).write(0.6, -0.6)
-    config = tmp_path / "robot.toml"
-    config.write_bytes(b"\xff not a config")
-    result = stop(tmp_path, "--config", str(config))
-    assert result.returncode == 2, result.stdout + result.stderr
-    (line,) = result.stderr.strip().splitlines()
-    assert f"using the board the runtime recorded in {run_dir / RECORD_NAME}" in line
-    assert "motor outputs off (I2C bus 4 address 0x41)" in result.stdout
-    assert f"EMULATOR in {chip_file}" in result.stdout
-    assert chip.refresh().all_off() and chip.sleeping
 
 
 def test_stop_with_an_unreadable_config_and_a_bad_record_says_both(run_dir: Path,

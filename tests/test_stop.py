@@ -209,6 +209,91 @@ def test_stop_reports_a_runtime_it_could_not_reach(tmp_path) -> None:
     assert chip.refresh().all_off() and chip.sleeping
 
 
+def silent_sockets(directory: Path, count: int) -> list[socket.socket]:
+    """Sockets that accept (the kernel queues the connection) and never answer."""
+    directory.mkdir(mode=0o700, exist_ok=True)
+    listeners = []
+    for n in range(count):
+        listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        listener.bind(str(directory / f"control-{n}.sock"))
+        listener.listen(4)
+        listeners.append(listener)
+    return listeners
+
+
+def test_sockets_that_do_not_answer_are_one_line_that_counts_them(tmp_path) -> None:
+    chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+    listeners = silent_sockets(tmp_path / "run", 6)
+    try:
+        result = stop_command(tmp_path)
+    finally:
+        for listener in listeners:
+            listener.close()
+    assert result.returncode == 0, result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("jetbot-rt stop: note: could not ask 6 runtime socket(s) to stop: ")
+    assert line.count("no answer within 1 s") == 4 and line.endswith("; and 2 more"), line
+    assert chip.refresh().all_off() and chip.sleeping
+
+
+@pytest.mark.parametrize("kind", ["symlink", "writable-by-others"])
+def test_a_runtime_directory_it_does_not_trust_is_named_and_not_asked(tmp_path,
+                                                                     kind: str) -> None:
+    reasons: list[str] = []
+    server = ControlServer(reasons.append, tmp_path / "real" / "control.sock")
+    server.start()
+    if kind == "symlink":
+        (tmp_path / "run").symlink_to(tmp_path / "real")
+        why = f"{tmp_path / 'run'} (a symbolic link)"
+    else:
+        (tmp_path / "real").rename(tmp_path / "run")
+        os.chmod(tmp_path / "run", 0o777)
+        why = f"{tmp_path / 'run'} (writable by others (mode 0777))"
+    try:
+        result = stop_command(tmp_path)
+    finally:
+        server.close()
+    assert result.returncode == 0, result.stderr
+    assert reasons == [] and "latched" not in result.stdout
+    (line,) = result.stderr.strip().splitlines()
+    assert line == f"jetbot-rt stop: ignored: {why}"
+
+
+def test_a_first_stop_the_bus_refused_is_written_again_after_the_asking(tmp_path) -> None:
+    chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+    WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0).write(0.6, 0.6)
+    chip.update(fail_next=1)  # a burst as long as the first write's attempts
+    config = tmp_path / "robot.toml"
+    config.write_text("[motors]\ni2c_retries = 0\n")
+    result = stop_command(tmp_path, "--config", str(config))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert chip.refresh().all_off() and chip.sleeping
+
+
+def test_stop_with_an_unreadable_config_stops_the_board_the_runtime_recorded(
+        tmp_path, monkeypatch) -> None:
+    """No ``--board-emulator``: bus, address and board come from the record the runtime wrote
+    when it took the board (the defaults, bus 1 at 0x60, have no board here)."""
+    from jetbot_rt.hal.ownership import BoardLock
+
+    monkeypatch.setenv("JETBOT_RT_RUNTIME_DIR", str(tmp_path / "run"))
+    chip_file = tmp_path / "chip.json"
+    chip = PCA9685Emulator(0x41, state_file=chip_file)
+    BoardLock.acquire(4, str(chip_file), 0x41).release()
+    WaveshareDrive(I2CBus(chip, 4), 0x41, 1600.0).write(0.6, -0.6)
+    config = tmp_path / "robot.toml"
+    config.write_bytes(b"\xff not a config")
+    result = subprocess.run([sys.executable, "-m", "jetbot_rt.cli", "stop", "--config",
+                             str(config)], capture_output=True, text=True, timeout=30)
+    assert result.returncode == 2, result.stdout + result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert "is not UTF-8" in line
+    assert line.endswith(f"; using the board the runtime recorded in {tmp_path}/run/board.json")
+    assert "motor outputs off (I2C bus 4 address 0x41)" in result.stdout
+    assert f"EMULATOR in {chip_file}" in result.stdout
+    assert chip.refresh().all_off() and chip.sleeping
+
+
 class TestStopNeverReportsAnOffItCouldNotWrite:
     """Whatever keeps the hardware stop from reaching the board -- no device node, a board that
     does not answer, a bus that fails every transfer, a bad config on top -- ``stop`` exits
