@@ -7,6 +7,7 @@ network for other images. The parity check must catch it, and nothing may be wri
 
 from __future__ import annotations
 
+import math
 import warnings
 from pathlib import Path
 
@@ -15,7 +16,12 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
-from jetbot_rt.train.export import PARITY_TOLERANCE, ExportError, export_model  # noqa: E402
+from jetbot_rt.train.export import (  # noqa: E402
+    PARITY_TOLERANCE,
+    ExportError,
+    export_model,
+    parity_error,
+)
 from jetbot_rt.train.model import ActorCritic, ModelConfig  # noqa: E402
 
 SMALL = ModelConfig(pool=8, channels=(4, 4, 4), hidden=8)
@@ -33,6 +39,18 @@ class BranchOnBrightness(ActorCritic):
         if float(obs.float().mean()) > 100.0:  # the export's example (mean ~127) is bright
             mu = mu + self.shift
         return mu, log_std, value
+
+
+class NaNValue(ActorCritic):
+    """Finite weights whose value output is NaN for every image: torch and onnxruntime agree
+    that it is NaN, and NaN differs from NaN by NaN."""
+
+    def __init__(self) -> None:
+        super().__init__(SMALL)
+
+    def forward(self, obs):  # type: ignore[no-untyped-def]
+        mu, log_std, value = super().forward(obs)
+        return mu, log_std, value * float("nan")
 
 
 def export_quietly(model: ActorCritic, out: Path) -> float:
@@ -69,3 +87,29 @@ class TestExportParity:
         error = export_quietly(BranchOnBrightness(shift=0.0), out)
         assert 0.0 <= error < PARITY_TOLERANCE
         assert out.stat().st_size > 0
+
+    def test_an_output_that_is_nan_on_both_sides_fails_the_parity_check(self,
+                                                                       tmp_path: Path) -> None:
+        out = tmp_path / "policy.onnx"
+        with pytest.raises(ExportError, match=r"parity check failed.* nan"):
+            export_quietly(NaNValue(), out)
+        assert not out.exists()
+
+    def test_the_parity_error_is_nan_whichever_output_is_nan(self) -> None:
+        import io
+
+        model = NaNValue().eval()
+        buffer = io.BytesIO()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(model, (torch.zeros(3, 56, 56, 3),), buffer, dynamo=False,
+                              input_names=["obs"], output_names=["mu", "log_std", "value"])
+        assert math.isnan(parity_error(model, buffer.getvalue()))
+
+    def test_a_network_with_a_non_finite_weight_is_not_exported(self, tmp_path: Path) -> None:
+        model = ActorCritic(SMALL)
+        with torch.no_grad():
+            model.value_head.bias[0] = float("inf")
+        with pytest.raises(ExportError, match=r"weight value_head\.bias holds non-finite"):
+            export_model(model, tmp_path / "policy.onnx")
+        assert list(tmp_path.iterdir()) == []

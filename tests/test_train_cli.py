@@ -138,9 +138,9 @@ def test_export_layout_metadata_and_parity(smoke_run, tmp_path):
     assert obs.shape[1:] == [POLICY_IMAGE_SIZE, POLICY_IMAGE_SIZE, 3]
     assert [o.name for o in session.get_outputs()] == ["mu", "log_std", "value"]
 
-    from jetbot_rt.train.checkpoint import load_checkpoint, model_from_checkpoint
+    from jetbot_rt.train.checkpoint import load_checkpoint
 
-    torch_model = model_from_checkpoint(load_checkpoint(smoke_run / "checkpoint.pt"))
+    torch_model = load_checkpoint(smoke_run / "checkpoint.pt").model()
     images = np.random.default_rng(7).integers(
         0, 256, (4, POLICY_IMAGE_SIZE, POLICY_IMAGE_SIZE, 3)).astype(np.float32)
     got = session.run(None, {"obs": images})
@@ -210,7 +210,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
           str(tmp_path / "x")], "--workers must be 0"),
         (["train", "--timesteps", "10", "--out", str(a_file / "sub")], "cannot write"),
         (["export", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(out)],
-         "does not exist"),
+         "No such file or directory"),
         (["export", "--checkpoint", str(a_file), "--out", str(out)],
          "not a jetbot-train checkpoint"),
         (["export", "--checkpoint", str(smoke_run / "policy.onnx"), "--out", str(out)],

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from jetbot_rt.train.args import OptionError
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE
 from jetbot_rt.train.model import ActorCritic, ModelConfig, normal_log_prob
 
@@ -50,8 +51,32 @@ def test_a_config_saved_before_image_size_existed_is_the_224_pooled_network():
     legacy["pool"] = 4
     config = ModelConfig.from_dict(legacy)
     assert (config.image_size, config.pool) == (224, 4)
-    with pytest.raises(ValueError, match="multiple of pool"):
+    with pytest.raises(OptionError, match=r"model\.pool must divide image_size 64"):
         ModelConfig(image_size=64, pool=3)
+
+
+@pytest.mark.parametrize("config", [
+    ModelConfig(), ModelConfig(first_kernel=6, first_stride=4), ModelConfig(image_size=224, pool=4),
+    ModelConfig(image_size=57, first_kernel=7, first_stride=3, channels=(3, 5, 7), hidden=9),
+    ModelConfig(image_size=8, first_kernel=8, first_stride=8)])
+def test_the_parameter_count_is_the_networks_without_building_it(config):
+    assert config.parameter_count() == sum(p.numel() for p in ActorCritic(config).parameters())
+
+
+@pytest.mark.parametrize(("options", "needle"), [
+    ({"hidden": 0}, "model.hidden must be 1 .. 65536, got 0"),
+    ({"hidden": True}, "model.hidden must be an integer, got True"),
+    ({"image_size": 4}, "model.image_size must be 8 .. 1024"),
+    ({"channels": (4, 4)}, "model.channels must be three integers"),
+    ({"first_stride": 6}, "model.first_stride must be 1 .. first_kernel (5)"),
+    ({"init_mu": float("nan")}, "model.init_mu must be a number in [-10, 10]"),
+    ({"image_size": 1024, "hidden": 60_000}, "parameters, more than the 8,000,000"),
+])
+def test_a_network_option_out_of_range_names_the_option(options, needle):
+    with pytest.raises(OptionError) as info:
+        ModelConfig(**options)
+    assert needle in str(info.value)
+    assert info.value.name.startswith("model")
 
 
 def test_the_first_layer_is_configurable_and_old_configs_keep_the_5x5_stride_2_one():
@@ -68,7 +93,7 @@ def test_the_first_layer_is_configurable_and_old_configs_keep_the_5x5_stride_2_o
     old = ActorCritic(ModelConfig.from_dict(saved)).encoder[0]
     assert (old.kernel_size, old.stride, old.padding) == ((5, 5), (2, 2), (2, 2))
     assert ppo_args("seek").model.first_stride == 2  # seek keeps the network it was tuned with
-    with pytest.raises(ValueError, match="first_stride"):
+    with pytest.raises(OptionError, match="first_stride"):
         ModelConfig(first_kernel=3, first_stride=4)
 
 

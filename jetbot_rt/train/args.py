@@ -19,7 +19,32 @@ from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.wrappers import Shaping
 
 LEGACY_IMAGE_SIZE, LEGACY_POOL = 224, 4
-"""What a model config without ``image_size`` (written before it existed) meant."""
+"""What a model config without ``image_size`` means: networks exported with a 224-pixel input
+that they pooled by 4 (``scripts/forward_to_56.py`` converts one)."""
+MAX_IMAGE_SIZE = 1024
+"""The largest input side the trainer renders: the env draws every frame at this size, and
+1024 already costs ~300x the default 56's pixels a step."""
+MAX_CHANNELS = 1024
+MAX_HIDDEN = 65_536
+INIT_RANGES = {"init_log_std": (-20.0, 2.0), "init_mu": (-10.0, 10.0)}
+"""Beyond these the first rollouts' actions are constant (std e^-20) or noise (std e^2 = 7
+times the action range); ``mu`` beyond 10 is clamped to 1 for many updates."""
+MAX_PARAMETERS = 8_000_000
+"""A network larger than this is refused (the default has 82 k-200 k): its checkpoint, with
+Adam's two moments, stays under ``checkpoint.MAX_CHECKPOINT_BYTES``, so every checkpoint the
+trainer writes it can read back."""
+
+
+class OptionError(UsageError):
+    """A trainer parameter of the wrong type or out of its range. ``name`` is the parameter
+    (``model.hidden`` for the network's), ``problem`` what is wrong; the command line says
+    it with the flag's name, a checkpoint's reader with the file's."""
+
+    def __init__(self, name: str, problem: str) -> None:
+        super().__init__(f"{name} {problem}")
+        self.name = name
+        self.problem = problem
+
 
 
 @dataclass(frozen=True)
@@ -52,18 +77,97 @@ class ModelConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> ModelConfig:
+    def from_dict(cls, data: Any) -> ModelConfig:
+        """A config as ``to_dict`` wrote it (or a ``[train.model]`` table); ``OptionError``
+        names the first bad key. Without ``image_size``: the legacy 224-pixel input."""
+        if not isinstance(data, dict):
+            raise OptionError("model", f"must be a table of network options, got "
+                                       f"{type(data).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(str(key) for key in data if key not in known)
+        if unknown:
+            raise OptionError("model", f"has unknown option(s) {', '.join(unknown)} "
+                                       f"(known: {', '.join(sorted(known))})")
         if "image_size" not in data:
             data = {**data, "image_size": LEGACY_IMAGE_SIZE, "pool": data.get("pool", LEGACY_POOL)}
-        return cls(**{**data, "channels": tuple(data["channels"])})
+        if "channels" in data:
+            if not isinstance(data["channels"], (list, tuple)):
+                raise OptionError("model.channels", "must be three integers")
+            data = {**data, "channels": tuple(data["channels"])}
+        return cls(**data)
 
     def __post_init__(self) -> None:
-        if self.image_size < 8 or self.pool < 1 or self.image_size % self.pool:
-            raise ValueError(f"image_size {self.image_size} must be >= 8 and a multiple of "
-                             f"pool {self.pool}")
+        for name in ("image_size", "pool", "first_kernel", "first_stride", "hidden"):
+            _check_int(f"model.{name}", getattr(self, name))
+        if not 8 <= self.image_size <= MAX_IMAGE_SIZE:
+            raise OptionError("model.image_size", f"must be 8 .. {MAX_IMAGE_SIZE}, got "
+                                                  f"{self.image_size}")
+        if not 1 <= self.pool <= self.image_size or self.image_size % self.pool:
+            raise OptionError("model.pool", f"must divide image_size {self.image_size}, got "
+                                            f"{self.pool}")
+        if (not isinstance(self.channels, tuple) or len(self.channels) != 3
+                or not all(_is_int(c) and 1 <= c <= MAX_CHANNELS for c in self.channels)):
+            raise OptionError("model.channels", f"must be three integers 1 .. {MAX_CHANNELS}, "
+                                                f"got {value_text(self.channels)}")
+        side = self.image_size // self.pool
+        if not 1 <= self.first_kernel <= side:
+            raise OptionError("model.first_kernel", f"must be 1 .. image_size / pool ({side}), "
+                                                    f"got {self.first_kernel}")
         if not 1 <= self.first_stride <= self.first_kernel:
-            raise ValueError(f"first_stride {self.first_stride} must be 1 .. first_kernel "
-                             f"{self.first_kernel}")
+            raise OptionError("model.first_stride", f"must be 1 .. first_kernel "
+                                                    f"({self.first_kernel}), got "
+                                                    f"{self.first_stride}")
+        if not 1 <= self.hidden <= MAX_HIDDEN:
+            raise OptionError("model.hidden", f"must be 1 .. {MAX_HIDDEN}, got {self.hidden}")
+        for name, (low, high) in INIT_RANGES.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                    not low <= value <= high:
+                raise OptionError(f"model.{name}", f"must be a number in [{low:g}, {high:g}], "
+                                                   f"got {value_text(value)}")
+        if self.parameter_count() > MAX_PARAMETERS:
+            raise OptionError("model", f"has {self.parameter_count():,} parameters, more than "
+                                       f"the {MAX_PARAMETERS:,} a checkpoint may hold")
+
+    def first_padding(self) -> int:
+        return (self.first_kernel - self.first_stride + 1) // 2
+
+    def feature_side(self) -> int:
+        """Side of the last convolution's feature map."""
+        side = (self.image_size // self.pool + 2 * self.first_padding() - self.first_kernel
+                ) // self.first_stride + 1
+        for _ in range(2):
+            side = (side + 1) // 2  # stride 2 with "same" padding
+        return side
+
+    def parameter_count(self) -> int:
+        """The network's parameters (``model.ActorCritic``), counted without building it."""
+        c1, c2, c3 = self.channels
+        k, side, hidden = self.first_kernel, self.feature_side(), self.hidden
+        convolutions = (3 * k * k + 1) * c1 + (9 * c1 + 1) * c2 + (9 * c2 + 1) * c3
+        heads = (hidden + 1) * 2 + (hidden + 1) * 1 + 2  # mu, value, log_std
+        return convolutions + (c3 * side * side + 1) * hidden + heads
+
+
+def value_text(value: Any) -> str:
+    """A value as an error message shows it: a scalar's repr (cut to 40 characters), else
+    its type (a tensor's repr could be pages long)."""
+    scalars = (bool, int, float, str, type(None))
+    flat = isinstance(value, (tuple, list)) and len(value) <= 8 and \
+        all(isinstance(v, scalars) for v in value)
+    if not (flat or isinstance(value, scalars)):
+        return type(value).__name__
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_int(name: str, value: Any) -> None:
+    if not _is_int(value):
+        raise OptionError(name, f"must be an integer, got {value_text(value)}")
 
 
 def usable_cores() -> int:

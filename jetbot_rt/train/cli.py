@@ -30,6 +30,11 @@ TASK_ALGO = {"seek": "dagger"}
 """The default --algo per task (docs/TRAINING.md, "Training seek by DAgger", says why)."""
 
 
+def flag(name: str) -> str:
+    """The command-line flag of a trainer parameter (``model.hidden``: ``--model-hidden``)."""
+    return "--" + name.replace(".", "-").replace("_", "-")
+
+
 def _task_list() -> str:
     from jetbot_rt.sim.tasks import TASKS
 
@@ -223,9 +228,14 @@ def main(argv: list[str] | None = None) -> int:
         print("jetbot-train: error: needs the train extra (missing "
               f"{', '.join(missing)}): pip install 'jetbot_rt[sim,train]'", file=sys.stderr)
         return EXIT_USAGE
+    from jetbot_rt.train.args import OptionError
+
     try:
         args = build_parser().parse_args(argv)
         return COMMANDS[args.command](args, argv)
+    except OptionError as exc:  # the library names the parameter; a user typed its flag
+        print(f"jetbot-train {argv[0]}: error: {flag(exc.name)} {exc.problem}", file=sys.stderr)
+        return EXIT_USAGE
     except UsageError as exc:
         print(f"jetbot-train {argv[0] if argv else ''}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

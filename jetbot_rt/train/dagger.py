@@ -26,12 +26,7 @@ from tqdm import tqdm
 
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.args import DAggerArgs, dagger_args
-from jetbot_rt.train.checkpoint import (
-    CHECKPOINT_NAME,
-    load_checkpoint,
-    model_from_checkpoint,
-    save_checkpoint,
-)
+from jetbot_rt.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 from jetbot_rt.train.dagger_sampler import LabelSampler
 from jetbot_rt.train.env import get_task, max_speed_of
 from jetbot_rt.train.expert import Expert
@@ -205,18 +200,17 @@ def train(args: DAggerArgs) -> dict[str, Any]:
     torch.manual_seed(args.seed)
     model = ActorCritic(args.model)
     if args.init:
-        model = model_from_checkpoint(load_checkpoint(args.init))
+        model = load_checkpoint(args.init).model()
     optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
     iteration, global_step, wall_before = 0, 0, 0.0
     if args.resume and checkpoint_path.exists():
-        state = load_checkpoint(checkpoint_path)
-        if state["task"] != args.task or state.get("algo") != "dagger":
-            raise UsageError(f"{checkpoint_path} is not a DAgger checkpoint for {args.task!r}")
-        model = model_from_checkpoint(state)
+        saved = load_checkpoint(checkpoint_path)
+        resume_state = saved.check_resumable(args.task, "dagger")
+        model = saved.model()
         optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
-        optimizer.load_state_dict(state["optimizer"])
-        iteration, global_step, wall_before = (state["update"], state["global_step"],
-                                               state["wall_s"])
+        saved.load_optimizer(optimizer)
+        iteration, global_step, wall_before = (resume_state.update, resume_state.global_step,
+                                               resume_state.wall_s)
     elif metrics_path.exists():
         metrics_path.unlink()
     model.eval()

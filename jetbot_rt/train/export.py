@@ -4,6 +4,7 @@ metadata that states how to feed it, and a parity check of onnxruntime against t
 from __future__ import annotations
 
 import io
+import os
 from pathlib import Path
 
 import numpy as np
@@ -13,12 +14,18 @@ import torch
 from torch import nn
 
 import jetbot_rt
+from jetbot_rt import safe_file
 from jetbot_rt.actions import DEFAULT_MAX_SPEED
 from jetbot_rt.errors import UsageError
-from jetbot_rt.train.checkpoint import load_checkpoint, model_from_checkpoint
+from jetbot_rt.safe_file import shown
+from jetbot_rt.train.args import OptionError
+from jetbot_rt.train.checkpoint import load_checkpoint
 from jetbot_rt.train.model import ActorCritic
 
 DEFAULT_OPSET = 16
+OPSETS = range(8, 21)
+"""The opsets torch's TorchScript exporter writes this network in (outside them it fails after
+printing its graph); onnxruntime 1.x reads all of them."""
 PARITY_TOLERANCE = 1e-4
 ACTION_MEANING = "[left, right] wheel commands in [-1, 1]; duty = max_speed * clamp(mu, -1, 1)"
 
@@ -60,8 +67,14 @@ def export_model(
     opset: int = DEFAULT_OPSET,
 ) -> float:
     """Write ``out`` and return the parity error; raise ``ExportError`` if it exceeds 1e-4."""
+    if isinstance(opset, bool) or not isinstance(opset, int) or opset not in OPSETS:
+        raise OptionError("opset", f"must be {OPSETS.start} .. {OPSETS.stop - 1}, got {opset!r}")
     out = Path(out)
     model = model.eval()
+    for name, weight in model.state_dict().items():
+        if not bool(torch.isfinite(weight).all()):
+            raise ExportError(f"cannot export: weight {name} holds non-finite values (NaN or "
+                              "infinity); the training diverged")
     size = model.config.image_size
     dummy = torch.rand(2, size, size, 3) * 255.0
     buffer = io.BytesIO()
@@ -80,16 +93,18 @@ def export_model(
     onnx.checker.check_model(proto)
     data = proto.SerializeToString()
     error = parity_error(model, data)
-    if not error < PARITY_TOLERANCE:
+    if not error < PARITY_TOLERANCE:  # NaN included: it compares false with everything
         raise ExportError(
             f"export parity check failed: onnxruntime vs torch max abs difference {error:.3g}"
-            f" >= {PARITY_TOLERANCE}"
+            f" (must be < {PARITY_TOLERANCE})"
         )
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_bytes(data)
+        with safe_file.replaced_file(out.parent, out.name) as fd, \
+                os.fdopen(os.dup(fd), "wb") as handle:
+            handle.write(data)
     except OSError as exc:
-        raise UsageError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise UsageError(f"cannot write {shown(out)}: {exc.strerror or exc}") from None
     return error
 
 
@@ -125,15 +140,13 @@ def parity_error(model: ActorCritic, onnx_bytes: bytes, batch: int = 3, seed: in
     got = session.run(["mu", "log_std", "value"], {"obs": images})
     with torch.no_grad():
         want = [t.numpy() for t in model(torch.from_numpy(images))]
-    return max(float(np.max(np.abs(g - w))) for g, w in zip(got, want, strict=True))
+    differences = [np.abs(g - w).ravel() for g, w in zip(got, want, strict=True)]
+    # One np.max over all outputs: it returns NaN if any output is NaN (non-finite outputs
+    # on both sides differ by NaN), where Python's max() would keep whichever came first.
+    return float(np.max(np.concatenate(differences)))
 
 
 def export_checkpoint(checkpoint: str | Path, out: str | Path, opset: int = DEFAULT_OPSET) -> float:
-    state = load_checkpoint(checkpoint)
-    return export_model(
-        model_from_checkpoint(state),
-        out,
-        task=state.get("task", "forward"),
-        max_speed=state.get("max_speed", DEFAULT_MAX_SPEED),
-        opset=opset,
-    )
+    loaded = load_checkpoint(checkpoint)
+    max_speed = DEFAULT_MAX_SPEED if loaded.max_speed is None else loaded.max_speed
+    return export_model(loaded.model(), out, task=loaded.task, max_speed=max_speed, opset=opset)

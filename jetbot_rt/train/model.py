@@ -46,11 +46,8 @@ class ActorCritic(nn.Module):
         super().__init__()
         self.config = config
         c1, c2, c3 = config.channels
-        kernel, stride = config.first_kernel, config.first_stride
-        pad = (kernel - stride + 1) // 2
-        side = (config.image_size // config.pool + 2 * pad - kernel) // stride + 1
-        for _ in range(2):
-            side = (side + 1) // 2  # stride 2 with "same" padding
+        kernel, stride, pad = config.first_kernel, config.first_stride, config.first_padding()
+        side = config.feature_side()
         relu_gain = nn.init.calculate_gain("relu")
         self.encoder = nn.Sequential(
             _layer_init(nn.Conv2d(3, c1, kernel, stride=stride, padding=pad), relu_gain),
@@ -66,7 +63,7 @@ class ActorCritic(nn.Module):
         self.mu_head = _layer_init(nn.Linear(config.hidden, 2), 0.01)
         nn.init.constant_(self.mu_head.bias, config.init_mu)
         self.value_head = _layer_init(nn.Linear(config.hidden, 1), 1.0)
-        self.log_std = nn.Parameter(torch.full((2,), config.init_log_std))
+        self.log_std = nn.Parameter(torch.full((2,), float(config.init_log_std)))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``obs``: ``[N, S, S, 3]`` RGB, 0..255 (any float or uint8 dtype), S = image_size.

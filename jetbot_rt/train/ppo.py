@@ -35,8 +35,8 @@ from jetbot_rt.errors import UsageError
 from jetbot_rt.train.args import TASK_DEFAULTS, PPOArgs, ppo_args, usable_cores
 from jetbot_rt.train.checkpoint import (
     CHECKPOINT_NAME,
+    TrainingState,
     load_checkpoint,
-    model_from_checkpoint,
     save_checkpoint,
 )
 from jetbot_rt.train.device import resolve_device, to_cpu
@@ -218,21 +218,19 @@ def train(args: PPOArgs) -> dict[str, Any]:
     rng = np.random.default_rng(args.seed)
     model = ActorCritic(args.model)
     if args.init:
-        model = model_from_checkpoint(load_checkpoint(args.init)).train()
+        model = load_checkpoint(args.init).model().train()
     model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate, eps=1e-5)
     global_step, update, wall_before = 0, 0, 0.0
-    resume_state: dict[str, Any] | None = None
+    resume_state: TrainingState | None = None
     if args.resume and checkpoint_path.exists():
-        resume_state = load_checkpoint(checkpoint_path)
-        if resume_state["task"] != args.task:
-            raise UsageError(f"{checkpoint_path} is for task {resume_state['task']!r}, "
-                             f"not {args.task!r}")
-        model = model_from_checkpoint(resume_state).train().to(device)
+        saved = load_checkpoint(checkpoint_path)
+        resume_state = saved.check_resumable(args.task, "ppo")
+        model = saved.model().train().to(device)
         optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate, eps=1e-5)
-        optimizer.load_state_dict(resume_state["optimizer"])
-        global_step, update = resume_state["global_step"], resume_state["update"]
-        wall_before = resume_state["wall_s"]
+        saved.load_optimizer(optimizer)
+        global_step, update = resume_state.global_step, resume_state.update
+        wall_before = resume_state.wall_s
         rng = np.random.default_rng(args.seed + update)
     elif not args.resume and metrics_path.exists():
         metrics_path.unlink()
@@ -243,8 +241,8 @@ def train(args: PPOArgs) -> dict[str, Any]:
     max_speed = max_speed_of(args.config, get_task(args.task))
 
     envs, normalizer = make_vector_env(args, model.config)
-    if resume_state is not None and "reward_rms" in resume_state:
-        _load_rms(normalizer.return_rms, resume_state["reward_rms"])
+    if resume_state is not None and resume_state.reward_rms is not None:
+        _load_rms(normalizer.return_rms, resume_state.reward_rms)
     writer = _tensorboard(out)
     with torch.no_grad():
         frame = torch.zeros((1, *envs.single_observation_space.shape))
