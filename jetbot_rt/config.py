@@ -556,6 +556,8 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise UsageError(f"config {path} is not valid TOML: {exc}") from None
+    except ValueError as exc:  # an integer of more than 4300 digits (Python >= 3.11's limit)
+        raise UsageError(f"config {path} is not valid TOML: {str(exc)[:80]}") from None
     except RecursionError:
         raise UsageError(f"config {path} is not valid TOML: nested too deeply") from None
 

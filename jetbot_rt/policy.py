@@ -133,6 +133,16 @@ def _infer_layout(shape: list[Any]) -> str | None:
     return None
 
 
+QUOTED_CHARS = 40
+"""A metadata value in a message is cut to this many characters: the model says what it
+likes, the message stays one readable line."""
+
+
+def quoted(text: str) -> str:
+    """``text`` as a message quotes it: ``repr``, cut at ``QUOTED_CHARS`` with ``...``."""
+    return repr(text[:QUOTED_CHARS]) + ("..." if len(text) > QUOTED_CHARS else "")
+
+
 def _check_max_speed(path: str, metadata: dict[str, str]) -> None:
     """``jetbot_rt.max_speed``, when the model states one, is a number in (0, 1]: what our
     exporter writes. Anything else is a broken export, refused rather than replaced by the
@@ -145,7 +155,7 @@ def _check_max_speed(path: str, metadata: dict[str, str]) -> None:
     except ValueError:
         value = math.nan
     if not 0.0 < value <= 1.0:  # NaN fails too
-        raise UsageError(f"policy {path}: its metadata {META_PREFIX}max_speed = {stated[:40]!r} "
+        raise UsageError(f"policy {path}: its metadata {META_PREFIX}max_speed = {quoted(stated)} "
                          "is not a number in (0, 1] (fix the export)")
 
 
@@ -237,7 +247,7 @@ class OnnxPolicy:
         stated = metadata.get(META_PREFIX + "layout")
         if not config.layout and stated is not None and stated not in LAYOUTS:
             raise UsageError(
-                f"policy {path}: its metadata {META_PREFIX}layout = {stated!r} is not one of "
+                f"policy {path}: its metadata {META_PREFIX}layout = {quoted(stated)} is not one of "
                 f"{', '.join(LAYOUTS)} (fix the export, or set [policy] layout to override it)"
             )
         layout = config.layout or stated or _infer_layout(shape)
@@ -260,14 +270,14 @@ class OnnxPolicy:
                              f"the runtime takes at most {MAX_INPUT_SIDE} pixels a side")
         declared = metadata.get(META_PREFIX + "input_size")
         if declared is not None and declared != f"{width}x{height}":
-            raise UsageError(f"policy {path}: metadata says input size {declared}, "
+            raise UsageError(f"policy {path}: metadata says input size {quoted(declared)}, "
                              f"the graph's input {model_input.name} is {width}x{height}")
         color = config.color_order or metadata.get(META_PREFIX + "color_order", "RGB")
         pixel_range = config.pixel_range or metadata.get(META_PREFIX + "pixel_range", "0-255")
         if color not in ("RGB", "BGR") or pixel_range not in ("0-255", "0-1", "-1-1"):
             raise UsageError(
-                f"policy {path}: unsupported metadata color_order={color!r} "
-                f"pixel_range={pixel_range!r}"
+                f"policy {path}: unsupported metadata color_order={quoted(color)} "
+                f"pixel_range={quoted(pixel_range)}"
             )
         if config.clip is not None and _DTYPES[model_input.type] == np.uint8:
             raise UsageError(f"policy {path}: [policy] clip needs a float input, "

@@ -64,7 +64,7 @@ def test_a_frame_of_another_size_is_area_averaged_not_sampled(tmp_path):
 
 def test_metadata_input_size_must_match_the_graph(tmp_path):
     path = channel_probe(tmp_path / "p.onnx", size=64, metadata={"jetbot_rt.input_size": "56x56"})
-    with pytest.raises(UsageError, match=r"metadata says input size 56x56.* is 64x64"):
+    with pytest.raises(UsageError, match=r"metadata says input size '56x56'.* is 64x64"):
         OnnxPolicy.load(path)
 
 
@@ -372,3 +372,13 @@ class TestUntrustedModels:
         policy = OnnxPolicy.load(os.fsdecode(name))
         assert policy.infer(RED).tolist() == [255.0, 0.0]
         assert policy.describe()["path"].endswith("\\xff.onnx")
+
+    def test_a_long_metadata_value_is_cut_in_the_message(self, tmp_path):
+        path = channel_probe(tmp_path / "p.onnx", metadata={"jetbot_rt.color_order": "B" * 41})
+        with pytest.raises(UsageError) as info:
+            OnnxPolicy.load(path)
+        assert str(info.value) == (f"policy {path}: unsupported metadata color_order="
+                                   f"'{'B' * 40}'... pixel_range='0-255'")
+        path = channel_probe(tmp_path / "p.onnx", metadata={"jetbot_rt.color_order": "B" * 40})
+        with pytest.raises(UsageError, match=f"color_order='{'B' * 40}' pixel_range"):
+            OnnxPolicy.load(path)

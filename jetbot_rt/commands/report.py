@@ -212,7 +212,7 @@ def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
     text = (f"t {record['t']:7.2f} s  tick {record['tick']}  "
             f"{'SAFE STOP' if stop else str(record.get('state') or '')[:24]}")
     cv2.putText(canvas, text, (6, height + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, white, 1)
-    mu, cmd = record["mu"], (stop.get("cmd", [0.0, 0.0]) if stop else record["cmd"])
+    mu, cmd = record["mu"], ((stop.get("cmd") or [0.0, 0.0]) if stop else record["cmd"])
     _bar(canvas, 6, height + 26, mu[0], "mu L")
     _bar(canvas, 6, height + 44, mu[1], "mu R")
     _bar(canvas, 6, height + 66, cmd[0], "duty L", max_speed)
