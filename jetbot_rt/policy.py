@@ -53,8 +53,8 @@ def provider_options(providers: list[str]) -> list[str | tuple[str, dict[str, st
     return result
 
 
-MAX_MODEL_BYTES = 2 * 1024**3 - 1
-"""protobuf's own limit: no ONNX file (without external data) is larger."""
+MAX_MODEL_BYTES = 2 * 1024**3
+"""protobuf's own limit (2 GiB): no ONNX file (without external data) is larger."""
 MAX_INPUT_SIDE = 4096
 """The largest input width or height a policy may declare. The largest sensor a JetBot
 carries (IMX219) gives 3280x2464; every frame of the policy's size is allocated several
@@ -68,7 +68,11 @@ def _model_source(path: Path) -> str | bytes:
     (onnxruntime accepts only UTF-8 paths and says "incompatible constructor arguments").
     Either way the file is first opened as ``safe_file`` does: a FIFO or a device is refused
     without blocking."""
-    os.close(safe_file.open_regular(path, "policy"))
+    fd = safe_file.open_regular(path, "policy")
+    size = os.fstat(fd).st_size
+    os.close(fd)
+    if size > MAX_MODEL_BYTES:
+        raise UsageError(f"policy {shown(path)} is larger than 2 GiB: not an ONNX model")
     try:
         str(path).encode("utf-8")
     except UnicodeEncodeError:

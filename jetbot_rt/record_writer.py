@@ -24,6 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from jetbot_rt import safe_file
 from jetbot_rt.telemetry import dumps, finite
 
 HEADER_BYTES = 4096
@@ -54,11 +55,15 @@ class Writer:
         self.error: str | None = None
         self.run_summary: dict[str, Any] = {}
         self.next_space_check = 0.0
-        self.ticks = open(self.path / "ticks.jsonl", "w", encoding="utf-8")  # noqa: SIM115
+        # Every file is created new, never through a link planted in a directory that
+        # existed (empty) before the run; OpenCV writes the video through the open file.
+        self.ticks = os.fdopen(safe_file.create_new(self.path / "ticks.jsonl"), "w",
+                               encoding="utf-8")
         self.fourcc = CODECS[config["codec"]]
-        self.video = cv2.VideoWriter(str(self.path / FRAMES_FILE),
-                                     cv2.VideoWriter_fourcc(*self.fourcc), config["rate_hz"],
-                                     tuple(config["frame_size"]))
+        self.video_fd = safe_file.create_new(self.path / FRAMES_FILE)
+        with safe_file.path_for_library(self.video_fd, Path(FRAMES_FILE).suffix) as video_path:
+            self.video = cv2.VideoWriter(video_path, cv2.VideoWriter_fourcc(*self.fourcc),
+                                         config["rate_hz"], tuple(config["frame_size"]))
 
     def handle(self, message: dict[str, Any]) -> None:
         slot = message.get("s")
@@ -113,6 +118,8 @@ class Writer:
     def finish(self) -> None:
         with contextlib.suppress(Exception):
             self.video.release()
+        with contextlib.suppress(OSError):
+            os.close(self.video_fd)
         with contextlib.suppress(OSError, ValueError):
             self.ticks.close()
         runtime = self.run_summary.pop("recorder", {})
@@ -121,9 +128,9 @@ class Writer:
                   "records_written": int(self.header[RECORDS]),
                   "records_lost": runtime.get("records_lost", 0) + int(self.header[LOST]),
                   "error": self.error}
-        with contextlib.suppress(OSError):  # the directory may be gone: the error said so
-            (self.path / "summary.json").write_text(json.dumps(
-                finite({**counts, "run": self.run_summary}), indent=1) + "\n")
+        with contextlib.suppress(OSError), os.fdopen(  # the directory may be gone: the
+                safe_file.create_new(self.path / "summary.json"), "w") as file:  # error said so
+            file.write(json.dumps(finite({**counts, "run": self.run_summary}), indent=1) + "\n")
 
 
 def main() -> int:
@@ -135,7 +142,12 @@ def main() -> int:
         os.nice(19)
     config = json.loads(sys.argv[1])
     mm = mmap.mmap(config["fd"], 0)
-    writer = Writer(config, mm)
+    try:
+        writer = Writer(config, mm)
+    except OSError as exc:  # something already there (planted?), the disk, permissions
+        name = f" {Path(exc.filename).name}" if exc.filename else ""
+        print(f"error: cannot create{name}: {exc.strerror or exc}", flush=True)
+        return 2
     if not writer.video.isOpened():
         print(f"error: this OpenCV ({cv2.__version__}) cannot write lossless {writer.fourcc} "
               "video; "

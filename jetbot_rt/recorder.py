@@ -149,8 +149,9 @@ class Recorder:
                 "versions": versions(),
                 "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(),
                 **meta}
-        try:
-            (self.path / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
+        try:  # a new file: a link planted in a directory that existed is not followed
+            with os.fdopen(safe_file.create_new(self.path / "meta.json"), "w") as file:
+                file.write(json.dumps(meta, indent=1) + "\n")
         except OSError as exc:
             raise UsageError(f"cannot record to {self.path}: {exc.strerror or exc}") from None
         width, height = frame_size

@@ -89,3 +89,4 @@ def test_a_recorded_real_run_started_in_a_planted_directory_runs_nothing_from_it
     assert runtime.board_off()
     assert len(Recording.open(tmp_path / "rec").ticks) == len(result.ticks) > 5
     assert sorted(os.listdir(tmp_path / "markers")) == []
+

@@ -350,3 +350,24 @@ def test_a_full_disk_is_one_line_exit_1_and_leaves_nothing_half_written(rec, tmp
     assert proc.stderr.startswith(f"jetbot-rt report: error: cannot write {out / failing}: ")
     assert (out / failing).read_text() == "the previous report\n"
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+
+
+# ---- writing one: the directory may be someone else's ----------------------------------
+
+@pytest.mark.parametrize("name", ["meta.json", "ticks.jsonl", "frames.mkv"])
+def test_a_link_planted_in_the_record_directory_is_never_written_through(tmp_path, monkeypatch,
+                                                                        name):
+    """The record directory may have existed (empty) and be writable by someone else, who
+    plants a link once it was found empty: every file of the recording is created new."""
+    from jetbot_rt import recorder as recorder_module
+    from jetbot_rt.recorder import Recorder
+
+    victim = tmp_path / "victim"
+    victim.write_text("precious\n")
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    monkeypatch.setattr(recorder_module, "prepare_directory", lambda path: None)  # the race
+    (rec / name).symlink_to(victim)
+    with pytest.raises(UsageError, match=f"cannot record to {rec}: .*File exists"):
+        Recorder(rec, {"source": "test"}, (32, 32), 30.0, t0=0.0)
+    assert victim.read_text() == "precious\n"

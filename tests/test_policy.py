@@ -382,3 +382,19 @@ class TestUntrustedModels:
         path = channel_probe(tmp_path / "p.onnx", metadata={"jetbot_rt.color_order": "B" * 40})
         with pytest.raises(UsageError, match=f"color_order='{'B' * 40}' pixel_range"):
             OnnxPolicy.load(path)
+
+    def test_a_file_larger_than_protobufs_limit_is_refused_before_it_is_read(self, tmp_path):
+        import os
+
+        from jetbot_rt.policy import MAX_MODEL_BYTES
+
+        assert MAX_MODEL_BYTES == 2 * 1024**3
+        path = tmp_path / "huge.onnx"
+        with open(path, "wb") as file:  # sparse: nothing is written
+            file.truncate(MAX_MODEL_BYTES + 1)
+        with pytest.raises(UsageError) as info:
+            OnnxPolicy.load(path)
+        assert str(info.value) == f"policy {path} is larger than 2 GiB: not an ONNX model"
+        os.truncate(path, MAX_MODEL_BYTES)  # at the limit: read, and refused by onnxruntime
+        with pytest.raises(UsageError, match="not a loadable ONNX model"):
+            OnnxPolicy.load(path)
