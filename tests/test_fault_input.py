@@ -228,7 +228,7 @@ def model_cases(tmp_path: Path) -> list:
         ("empty", empty, "not a loadable ONNX model"),
         ("truncated", truncated, "not a loadable ONNX model"),
         ("a-toml-file", a_config, "not a loadable ONNX model"),
-        ("a-directory", tmp_path, "no such file"),
+        ("a-directory", tmp_path, "a directory"),
         ("unknown-operator", policy_models.unknown_operator(tmp_path / "op.onnx"),
          "is not a registered function/op"),
         ("dynamic-size", policy_models.dynamic_size(tmp_path / "dyn.onnx"), "has no fixed size"),
