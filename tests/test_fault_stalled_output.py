@@ -12,6 +12,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,6 +20,7 @@ from pathlib import Path
 import policy_models
 import pytest
 from runner import JETBOT_RT, read_telemetry, read_telemetry_safe, wait_for
+from test_fault_matrix import record_figures
 
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
@@ -104,8 +106,10 @@ def test_a_run_whose_output_nobody_reads_drives_and_stops(tmp_path: Path, stalle
             seen = wait_for(lambda: process.poll() is not None or ticks(tmp_path) >= 30,
                             LIVENESS_S, interval=0.05)
             assert seen is not None and process.poll() is None, "it did not drive"
+            t_told = time.monotonic()
             ENDERS[ender](tmp_path, process)
             code = ended(process)
+            t_exit = time.monotonic()
         finally:
             if process.poll() is None:
                 process.kill()
@@ -114,6 +118,8 @@ def test_a_run_whose_output_nobody_reads_drives_and_stops(tmp_path: Path, stalle
     end = read_telemetry(tmp_path / "t.jsonl")[-1]
     assert end["event"] == "end" and end["reason"].startswith(REASONS[ender]), end
     assert end["cmd"] == [0.0, 0.0] and end["motors_confirmed_zero"] is True
+    record_figures(f"stalled-{stalled}-{ender.replace(' ', '-')}", exit_code=code,
+                   told_to_exit_s=round(t_exit - t_told, 4), ticks=end["ticks"])
 
 
 def test_a_run_that_ends_by_itself_leaves_though_nobody_reads_its_summary(
@@ -174,8 +180,11 @@ def test_a_telemetry_fifo_nobody_reads_costs_records_not_the_stop(tmp_path: Path
         driving = wait_for(lambda: process.poll() is not None or not chip.refresh().all_off(),
                            LIVENESS_S, interval=0.05)
         assert driving is not None and process.poll() is None, "it did not drive"
+        t_signal = time.monotonic()
         process.send_signal(signal.SIGTERM)
+        t_off = wait_for(lambda: chip.refresh().all_off(), LIVENESS_S)
         out, err = process.communicate(timeout=LIVENESS_S)
+        t_exit = time.monotonic()
     finally:
         if process.poll() is None:
             process.kill()
@@ -187,3 +196,7 @@ def test_a_telemetry_fifo_nobody_reads_costs_records_not_the_stop(tmp_path: Path
     assert "motors       confirmed zero" in out
     assert "the writer is blocked" in err
     assert "Traceback" not in err
+    assert t_off is not None
+    record_figures("stalled-telemetry-fifo-real", exit_code=process.returncode,
+                   inject_to_board_off_s=round(t_off - t_signal, 4),
+                   told_to_exit_s=round(t_exit - t_signal, 4))
