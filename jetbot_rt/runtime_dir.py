@@ -77,12 +77,19 @@ def default_dir() -> Path:
     return configured_dir() or fallback_dir()
 
 
+MAX_TMP_ENTRIES = 100_000
+"""Names of ``/tmp`` looked at for ``/tmp/jetbot-rt-<uid>.*``: another user filling ``/tmp``
+costs a search at most this many (a few tens of milliseconds)."""
+
+
 def _tmp_alternatives() -> Iterator[Path]:
     """``/tmp/jetbot-rt-<uid>.*``, at most ``MAX_ENTRIES`` of them, by name."""
     prefix = f"jetbot-rt-{os.getuid()}."
     names = []
     with contextlib.suppress(OSError), os.scandir(TMP) as entries:
-        for entry in entries:
+        for count, entry in enumerate(entries):
+            if count >= MAX_TMP_ENTRIES:
+                break
             if entry.name.startswith(prefix):
                 names.append(entry.name)
                 if len(names) >= MAX_ENTRIES:
@@ -208,10 +215,10 @@ class Found:
     """Trusted directories that could not be read."""
 
 
-def search_dirs() -> list[Path]:
+def search_dirs(alternatives: bool = True) -> list[Path]:
     """Where ``stop`` looks: the directory the environment names (and, for
     ``$XDG_RUNTIME_DIR``, the service's); else the fallback (a non-root user's private
-    alternatives in ``/tmp`` too) and the service's."""
+    alternatives in ``/tmp`` too, unless ``alternatives`` is False) and the service's."""
     configured = configured_dir()
     if configured is not None:
         explicit = os.environ.get("JETBOT_RT_RUNTIME_DIR") or os.environ.get(
@@ -220,7 +227,7 @@ def search_dirs() -> list[Path]:
     fallback = fallback_dir()
     if fallback == SERVICE_DIR:
         return [SERVICE_DIR]
-    return [fallback, *_tmp_alternatives(), SERVICE_DIR]
+    return [fallback, *(_tmp_alternatives() if alternatives else ()), SERVICE_DIR]
 
 
 _KINDS = {stat.S_IFSOCK: "not a socket", stat.S_IFREG: "not a regular file"}
@@ -241,12 +248,13 @@ def _trusted_entry(entry: os.DirEntry, want: int, owners: tuple[int, ...]) -> st
 
 def search(socket_glob: str | None = None, max_sockets: int = 0) -> Found:
     """The trusted sockets matching ``socket_glob`` (at most ``max_sockets``, the rest
-    ignored; none without a glob) and board records in ``search_dirs()``; what was not
-    trusted is named."""
+    ignored) in ``search_dirs()``, and board records; what was not trusted is named. Without
+    a glob (the board record only, read before the stop is written) not in ``/tmp``'s
+    alternatives: how full another user makes ``/tmp`` cannot delay the stop."""
     import fnmatch
 
     found = Found()
-    for directory in search_dirs():
+    for directory in search_dirs(alternatives=socket_glob is not None):
         try:
             st = os.lstat(directory)
         except FileNotFoundError:
