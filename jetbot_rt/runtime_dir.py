@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.safe_file import loads, open_regular, replaced_file
+from jetbot_rt.safe_file import loads, open_regular, replaced_file, shown
 
 SERVICE_DIR = Path("/run/jetbot-rt")
 TMP = Path("/tmp")
@@ -50,6 +50,13 @@ MAX_ENTRIES = 256
 stuffed with names costs ``stop`` at most this many ``lstat`` calls."""
 _DIR_FLAGS = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
 _RECORD_KEYS = {"i2c_bus", "address", "emulator", "pid"}
+
+
+def printable(path: Path) -> str:
+    """A path as one line may show it: another user picks the names in ``/tmp``, and a newline
+    or a terminal's escape sequence in one must not reach the screen as such."""
+    return "".join(c if c.isprintable() else f"\\x{ord(c):02x}" if ord(c) < 256
+                   else f"\\u{ord(c):04x}" for c in shown(path))
 
 
 def configured_dir() -> Path | None:
@@ -260,18 +267,19 @@ def search(socket_glob: str | None = None, max_sockets: int = 0) -> Found:
         except FileNotFoundError:
             continue
         except OSError as exc:
-            found.problems.append(f"{directory}: {exc.strerror or exc}")
+            found.problems.append(f"{printable(directory)}: {exc.strerror or exc}")
             continue
         why = _why_untrusted(directory, st)
         if why is not None:
-            found.ignored.append(f"{directory} ({why})")
+            found.ignored.append(f"{printable(directory)} ({why})")
             continue
         owners = (os.geteuid(), 0, st.st_uid)
         try:
             with os.scandir(directory) as entries:
                 for count, entry in enumerate(entries):
                     if count >= MAX_ENTRIES:
-                        found.ignored.append(f"{directory} (more than {MAX_ENTRIES} entries)")
+                        found.ignored.append(
+                            f"{printable(directory)} (more than {MAX_ENTRIES} entries)")
                         break
                     path = directory / entry.name
                     if entry.name == RECORD_NAME:
@@ -279,7 +287,7 @@ def search(socket_glob: str | None = None, max_sockets: int = 0) -> Found:
                         if why is None:
                             found.records.append((path, st.st_uid))
                         else:
-                            found.ignored.append(f"{path} ({why})")
+                            found.ignored.append(f"{printable(path)} ({why})")
                     elif socket_glob and fnmatch.fnmatch(entry.name, socket_glob):
                         why = _trusted_entry(entry, stat.S_IFSOCK, owners)
                         if why is None and len(found.sockets) >= max_sockets:
@@ -287,9 +295,9 @@ def search(socket_glob: str | None = None, max_sockets: int = 0) -> Found:
                         if why is None:
                             found.sockets.append(path)
                         else:
-                            found.ignored.append(f"{path} ({why})")
+                            found.ignored.append(f"{printable(path)} ({why})")
         except OSError as exc:  # the service's directory, seen by another user
-            found.problems.append(f"{directory}: {exc.strerror or exc}")
+            found.problems.append(f"{printable(directory)}: {exc.strerror or exc}")
     found.sockets.sort()
     return found
 
@@ -354,5 +362,5 @@ def read_board_record() -> tuple[BoardRecord | None, str | None]:
         try:
             return _read_record(path, (os.geteuid(), 0, dir_owner)), None
         except UsageError as exc:
-            whys.append(f"{path}: {exc}")
+            whys.append(f"{printable(path)}: {exc}")
     return None, "; ".join(whys) or "no board record in the runtime directory"

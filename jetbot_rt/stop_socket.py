@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.runtime_dir import SERVICE_DIR, default_dir, private_dir, search
+from jetbot_rt.runtime_dir import SERVICE_DIR, default_dir, printable, private_dir, search
 
 __all__ = ["SERVICE_DIR", "ControlServer", "StopReply", "default_socket_dir",
            "default_socket_path", "request_stop"]
@@ -341,7 +341,7 @@ def request_stop(path: Path | None = None, timeout: float = ASK_TOTAL_S) -> Stop
                 elif outcome == "":
                     retry.append(candidate)
                 elif outcome is not None:
-                    reply.unreachable.append(f"{candidate}: {outcome}")
+                    reply.unreachable.append(f"{printable(candidate)}: {outcome}")
             to_connect = retry
             left = deadline - time.monotonic()
             if left <= 0:
@@ -356,11 +356,12 @@ def request_stop(path: Path | None = None, timeout: float = ASK_TOTAL_S) -> Stop
                         reply.acknowledged.append(ask.path)
                     else:
                         reply.unreachable.append(
-                            f"{ask.path}: unexpected answer {ask.answer[:40]!r}")
+                            f"{printable(ask.path)}: unexpected answer {ask.answer[:40]!r}")
     finally:
         for key in list(selector.get_map().values()):
             key.data.sock.close()
-            reply.unreachable.append(f"{key.data.path}: no answer within {timeout:g} s")
+            reply.unreachable.append(
+                f"{printable(key.data.path)}: no answer within {timeout:g} s")
         selector.close()
-    reply.unreachable += [f"{c}: its listen queue stayed full" for c in to_connect]
+    reply.unreachable += [f"{printable(c)}: its listen queue stayed full" for c in to_connect]
     return reply

@@ -168,7 +168,8 @@ def test_another_users_directory_at_our_tmp_name_is_ignored_and_named(tmp_path: 
         taken = Path(f"/tmp/jetbot-rt-{victim}")
         assert as_user(hostile, "import os, sys\nos.mkdir(sys.argv[1], 0o777)\n"
                        "os.chmod(sys.argv[1], 0o777)\nos.mkdir(sys.argv[1] + '.x', 0o700)\n"
-                       "os.symlink(sys.argv[1], sys.argv[1] + '.link')\n",
+                       "os.symlink(sys.argv[1], sys.argv[1] + '.link')\n"
+                       "os.mkdir(sys.argv[1] + '.\\n\\x1b[2J')\n",  # a newline, a terminal escape
                        str(taken)).returncode == 0
         board_dir = shared_dir(victim)
         try:
@@ -188,7 +189,8 @@ def test_another_users_directory_at_our_tmp_name_is_ignored_and_named(tmp_path: 
             line = stop_line(stop.stderr, "ignored")
             for why in (f"{taken} (owned by uid {hostile})",
                         f"{taken}.x (owned by uid {hostile})",
-                        f"{taken}.link (a symbolic link)"):
+                        f"{taken}.link (a symbolic link)",
+                        f"{taken}.\\x0a\\x1b[2J (owned by uid {hostile})"):
                 assert why in line, line
             assert chip.refresh().all_off() and chip.sleeping
             assert os.stat(board_dir / "chip.json").st_uid == victim  # still V's
