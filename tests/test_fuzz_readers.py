@@ -33,7 +33,7 @@ from jetbot_rt.errors import UsageError
 from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
 from jetbot_rt.recording import Recording
 
-BUDGET_S = float(os.environ.get("JETBOT_RT_FUZZ_S", "2.5"))
+BUDGET_S = float(os.environ.get("JETBOT_RT_FUZZ_S", "2"))
 """Each fuzz loop runs its seeded cases until this much time has passed (at least a few);
 ``JETBOT_RT_FUZZ_S=600`` searches longer."""
 CASE_HANG_S = 30.0
@@ -190,7 +190,7 @@ def test_fuzzed_recordings_are_read_or_refused_in_one_line(pristine, bundled, tm
     assert outcomes["refused"] > 0 and sum(outcomes.values()) >= 20, outcomes
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("seed", [1, 2])
 def test_fuzzed_recordings_end_to_end_exit_0_or_2_with_one_line(pristine, tmp_path, seed):
     rng = random.Random(f"end-to-end-{seed}")
     rec = Path(shutil.copytree(pristine, tmp_path / "rec"))
