@@ -12,11 +12,13 @@ RED = np.zeros((224, 224, 3), np.uint8)
 RED[..., 0] = 255
 
 
-def channel_probe(path, layout="NHWC", size=224, metadata=None, reduce="ReduceMean"):
+def channel_probe(path, layout="NHWC", size=224, metadata=None, reduce="ReduceMean",
+                  height=None):
     """mu = [mean of channel 0, mean of channel 2] as the model sees its input (or another
-    reduction over the image)."""
+    reduction over the image). ``size`` is the width, and the height unless ``height``."""
+    height = size if height is None else height
     axes = [1, 2] if layout == "NHWC" else [2, 3]
-    shape = [1, size, size, 3] if layout == "NHWC" else [1, 3, size, size]
+    shape = [1, height, size, 3] if layout == "NHWC" else [1, 3, height, size]
     graph = helper.make_graph(
         [
             helper.make_node(reduce, ["obs"], ["means"], axes=axes, keepdims=0),
@@ -268,22 +270,9 @@ class TestClip:
         assert clipped.infer(RED).tolist() == [5.0, 0.0]
 
 
-def sized_probe(path, width, height, metadata=None):
+def sized_probe(path, width, height):
     """An NHWC float model of input ``width`` x ``height`` (nothing is allocated at load)."""
-    graph = helper.make_graph(
-        [helper.make_node("ReduceMean", ["obs"], ["means"], axes=[1, 2], keepdims=0),
-         helper.make_node("Gather", ["means", "pick"], ["mu"], axis=1)],
-        "sized", [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [1, height, width, 3])],
-        [helper.make_tensor_value_info("mu", TensorProto.FLOAT, [1, 2])],
-        [numpy_helper.from_array(np.array([0, 2], np.int64), "pick")],
-    )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 16)])
-    model.ir_version = 8
-    for key, value in (metadata or {}).items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = key, value
-    onnx.save(model, str(path))
-    return path
+    return channel_probe(path, size=width, height=height)
 
 
 class TestUntrustedModels:
