@@ -236,6 +236,46 @@ def test_sockets_that_do_not_answer_are_one_line_that_counts_them(tmp_path) -> N
     assert chip.refresh().all_off() and chip.sleeping
 
 
+@pytest.mark.parametrize("count", range(10))
+def test_a_line_names_four_and_counts_the_rest(count: int) -> None:
+    from jetbot_rt.commands.stop import MAX_NAMED, _listed
+
+    items = [f"p{n}" for n in range(count)]
+    more = f"; and {count - MAX_NAMED} more" if count > MAX_NAMED else ""
+    assert _listed(items) == "; ".join(items[:MAX_NAMED]) + more
+
+
+def test_a_board_that_cannot_be_read_back_is_not_confirmed(tmp_path) -> None:
+    """The stop went out, then the board's file became unreadable (held owner: ``stop``
+    waits for it, meanwhile the file is swapped for a directory): exit 1, one line, not a
+    traceback or a usage error."""
+    import fcntl
+
+    chip = PCA9685Emulator(0x60, state_file=tmp_path / "chip.json")
+    WaveshareDrive(I2CBus(chip, 1), 0x60, 1600.0).write(0.6, 0.6)
+    owner = os.open(tmp_path / "chip.json.owner", os.O_RDONLY | os.O_CREAT, 0o666)
+    fcntl.flock(owner, fcntl.LOCK_EX)
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))
+    stop = subprocess.Popen([sys.executable, "-m", "jetbot_rt.cli", "stop", "--board-emulator",
+                             str(tmp_path / "chip.json")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 20
+        while not chip.refresh().sleeping and time.monotonic() < deadline:
+            time.sleep(0.005)
+        (tmp_path / "chip.json").rename(tmp_path / "was-chip.json")
+        (tmp_path / "chip.json").mkdir()
+        out, err = stop.communicate(timeout=30)
+    finally:
+        os.close(owner)
+        if stop.poll() is None:
+            stop.kill()
+            stop.communicate()
+    assert stop.returncode == 1, out + err
+    (line,) = err.strip().splitlines()
+    assert "motors NOT confirmed off" in line and "cannot read the board back" in line, line
+
+
 @pytest.mark.parametrize("kind", ["symlink", "writable-by-others"])
 def test_a_runtime_directory_it_does_not_trust_is_named_and_not_asked(tmp_path,
                                                                      kind: str) -> None:
