@@ -65,7 +65,8 @@ def env_rate(kind: str, num_envs: int, workers: int, steps: int) -> float:
 
 
 def ppo_rate(kind: str, num_envs: int, workers: int, updates: int, num_steps: int) -> float:
-    from jetbot_rt.train.ppo import PPOArgs, train
+    from jetbot_rt.train.hyperparams import PPOArgs
+    from jetbot_rt.train.ppo import train
     with tempfile.TemporaryDirectory() as out:
         args = PPOArgs(num_envs=num_envs, num_steps=num_steps,
                        total_timesteps=num_envs * num_steps * updates, device="cpu",

@@ -70,7 +70,7 @@ def train_ours(task: str, budget_s: float, num_envs: int, out: Path,
 
 def sb3_env(task: str) -> Any:
     """The registered env with the trainer's shaping (``make_train_env``), as ours gets it."""
-    from jetbot_rt.train.ppo import ppo_args
+    from jetbot_rt.train.hyperparams import ppo_args
     from jetbot_rt.train.wrappers import make_train_env
 
     return make_train_env(task, None, ppo_args(task).shaping)

@@ -143,7 +143,8 @@ def main() -> None:
     parser.add_argument("--tag", default="")
     args = parser.parse_args()
 
-    from jetbot_rt.train.ppo import ppo_args, train
+    from jetbot_rt.train.hyperparams import ppo_args
+    from jetbot_rt.train.ppo import train
 
     overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     with tempfile.TemporaryDirectory() as out:

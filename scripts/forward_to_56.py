@@ -28,7 +28,8 @@ import torch
 from onnx import numpy_helper
 
 from jetbot_rt.train.export import export_model
-from jetbot_rt.train.model import LEGACY_IMAGE_SIZE, LEGACY_POOL, ActorCritic, ModelConfig
+from jetbot_rt.train.hyperparams import LEGACY_IMAGE_SIZE, LEGACY_POOL, ModelConfig
+from jetbot_rt.train.model import ActorCritic
 
 TOLERANCE = 1e-4
 

@@ -24,7 +24,8 @@ import torch
 
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.checkpoint import CHECKPOINT_FORMAT, load_checkpoint
-from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.hyperparams import ModelConfig
+from jetbot_rt.train.model import ActorCritic
 
 TINY = ModelConfig(image_size=8, channels=(2, 2, 2), hidden=4, first_kernel=3, first_stride=2)
 """161 parameters: an export takes ~70 ms, so a few seconds try dozens of cases."""
@@ -143,10 +144,10 @@ def mutate_bytes(rng: np.random.Generator, data: bytes) -> bytes:
 def resume_like(path: Path) -> None:
     """What ``--resume`` does with a checkpoint, up to one optimizer step."""
     loaded = load_checkpoint(path)
-    loaded.check_resumable("forward", "ppo")
+    resumed = loaded.check_resumable("forward", "ppo")
     model = loaded.model().train()
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, eps=1e-5)
-    loaded.load_optimizer(optimizer)
+    resumed.load_optimizer(optimizer)
     model(torch.rand(1, 8, 8, 3) * 255)[2].sum().backward()
     optimizer.step()
 

@@ -51,7 +51,8 @@ def test_expert_succeeds_on_randomized_seek_episodes():
 
 
 def test_regression_fits_the_labels():
-    from jetbot_rt.train.dagger import Dataset, dagger_args, regress
+    from jetbot_rt.train.dagger import Dataset, regress
+    from jetbot_rt.train.hyperparams import dagger_args
     from jetbot_rt.train.model import ActorCritic
 
     args = dagger_args("seek", {"train_samples": 1024, "batch_size": 32, "learning_rate": 3e-3})
@@ -92,7 +93,8 @@ def test_photometric_jitter_scales_each_frame_within_its_range():
 
 
 def test_learning_rate_falls_geometrically_to_the_final_one():
-    from jetbot_rt.train.dagger import dagger_args, learning_rate_at
+    from jetbot_rt.train.dagger import learning_rate_at
+    from jetbot_rt.train.hyperparams import dagger_args
 
     args = dagger_args("seek", {"iterations": 3, "learning_rate": 1e-3,
                                 "final_learning_rate": 1e-5})
@@ -140,9 +142,10 @@ def test_ctrl_c_saves_exports_and_resumes_from_the_iteration(tmp_path, monkeypat
     """Ctrl-C (a KeyboardInterrupt in the regression of iteration 2) writes the checkpoint of
     the last finished iteration, the ONNX and the curve; --resume goes on from there."""
     from jetbot_rt.train import dagger
-    from jetbot_rt.train.ppo import Interrupted
+    from jetbot_rt.train.hyperparams import dagger_args
+    from jetbot_rt.train.run_dir import Interrupted
 
-    args = dagger.dagger_args("seek", {"iterations": 2, "steps_per_iteration": 10,
+    args = dagger_args("seek", {"iterations": 2, "steps_per_iteration": 10,
                                        "train_samples": 32, "num_envs": 1, "workers": 0,
                                        "beta": 1.0, "out": str(tmp_path), "progress": False})
     real = dagger.regress

@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from jetbot_rt.train.dagger import _labelling_env
+from jetbot_rt.config import Config
+from jetbot_rt.train.dagger import labelling_spec
 from jetbot_rt.train.expert import Expert
-from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.hyperparams import ModelConfig
+from jetbot_rt.train.model import ActorCritic
+from jetbot_rt.train.vec_env import worker_env
 
 pytest.importorskip("pybullet")
 
@@ -23,7 +26,7 @@ def weights_of(model: ActorCritic) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def sampler():
-    env = _labelling_env("seek", None, MODEL.image_size, MODEL, 1)
+    env = worker_env(labelling_spec("seek", Config(), MODEL), 1)
     yield env
     env.close()
 

@@ -13,7 +13,8 @@ from gymnasium.utils.env_checker import check_env
 
 from jetbot_rt.config import from_dict
 from jetbot_rt.errors import UsageError
-from jetbot_rt.train.env import POLICY_IMAGE_SIZE, TASKS, JetbotEnv, forward_reward
+from jetbot_rt.sim.tasks import TASKS
+from jetbot_rt.train.env import POLICY_IMAGE_SIZE, JetbotEnv, forward_reward
 
 pytest.importorskip("pybullet")
 

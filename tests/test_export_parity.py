@@ -22,7 +22,8 @@ from jetbot_rt.train.export import (  # noqa: E402
     export_model,
     parity_error,
 )
-from jetbot_rt.train.model import ActorCritic, ModelConfig  # noqa: E402
+from jetbot_rt.train.hyperparams import ModelConfig  # noqa: E402
+from jetbot_rt.train.model import ActorCritic  # noqa: E402
 
 SMALL = ModelConfig(pool=8, channels=(4, 4, 4), hidden=8)
 

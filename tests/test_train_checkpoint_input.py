@@ -118,7 +118,7 @@ FIELD_DEFECTS: list[tuple[str, Callable[[], Any], str]] = [
     ("a string for an integer", with_model_config(hidden="8"), "model_config.hidden must be"),
     ("a network over the parameter cap", with_model_config(hidden=60_000, image_size=512),
      "parameters, more than"),
-    ("an unknown network option", with_model_config(depth=3), "unknown option(s) depth"),
+    ("an unknown network option", with_model_config(depth=3), "unknown model option(s) depth"),
     ("an initial log std too large to build", with_model_config(init_log_std=10**30),
      "model_config.init_log_std must be a number in"),
     ("two channel counts", with_model_config(channels=[2, 2]), "model_config.channels"),
@@ -327,6 +327,6 @@ def test_mutated_checkpoints_are_refused_in_one_line_or_exported(tmp_path):
 
 def test_the_largest_network_the_options_allow_has_a_readable_checkpoint():
     """Its weights and Adam's two moments (float32) and a margin fit the reader's cap."""
-    from jetbot_rt.train.args import MAX_PARAMETERS
+    from jetbot_rt.train.hyperparams import MAX_PARAMETERS
 
     assert 3 * 4 * MAX_PARAMETERS + 16 * 1024 * 1024 < MAX_CHECKPOINT_BYTES

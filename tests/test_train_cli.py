@@ -197,6 +197,8 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
     a_file.write_text("not a checkpoint")
     bad_train = tmp_path / "bad.toml"
     bad_train.write_text("[train]\ngama = 0.9\n")
+    bad_value = tmp_path / "value.toml"
+    bad_value.write_text("[train]\nnum_steps = \"64\"\n[train.model]\nhidden = 8\n")
     out = tmp_path / "m.onnx"
     cases = [
         (["train", "--task", "sideways", "--timesteps", "10", "--out", str(tmp_path / "x")],
@@ -204,6 +206,12 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
         (["train", "--config", str(bad_train), "--out", str(tmp_path / "x")],
          "unknown training option(s) gama"),
         (["train", "--timesteps", "0", "--out", str(tmp_path / "x")], "--timesteps"),
+        (["train", "--config", str(bad_value), "--out", str(tmp_path / "x")],
+         "[train] num_steps must be an integer, got '64'"),
+        (["train", "--model-image-size", "7", "--out", str(tmp_path / "x")],
+         "--model-image-size must be 8 .. 1024, got 7"),
+        (["train", "--algo", "dagger", "--task", "seek", "--snapshots", "-1", "--out",
+          str(tmp_path / "x")], "--snapshots must be >= 0, got -1"),
         (["train", "--timesteps", "10", "--num-envs", "-1", "--out", str(tmp_path / "x")],
          "--num-envs"),
         (["train", "--timesteps", "10", "--num-envs", "2", "--workers", "1", "--out",
@@ -229,7 +237,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
     for args, needle in cases:
         code, _, err = train_main(capsys, *args)
         _one_line_exit_2(subprocess.CompletedProcess(args, code, "", err), needle)
-    for args, needle in (cases[0], cases[7]):
+    for args, needle in (cases[0], cases[10]):
         _one_line_exit_2(train_cli(*args), needle)
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from jetbot_rt.train.args import OptionError
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE
-from jetbot_rt.train.model import ActorCritic, ModelConfig, normal_log_prob
+from jetbot_rt.train.hyperparams import ModelConfig, OptionError
+from jetbot_rt.train.model import ActorCritic, normal_log_prob
 
 S = POLICY_IMAGE_SIZE
 
@@ -80,7 +80,7 @@ def test_a_network_option_out_of_range_names_the_option(options, needle):
 
 
 def test_the_first_layer_is_configurable_and_old_configs_keep_the_5x5_stride_2_one():
-    from jetbot_rt.train.ppo import ppo_args
+    from jetbot_rt.train.hyperparams import ppo_args
 
     forward = ActorCritic(ppo_args("forward").model)
     conv = forward.encoder[0]

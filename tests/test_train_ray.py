@@ -28,7 +28,8 @@ import torch
 pytest.importorskip("pybullet")
 ray = pytest.importorskip("ray", reason="ray is not installed: pip install -e '.[cluster]'")
 
-from jetbot_rt.train.ppo import PPOArgs, train  # noqa: E402
+from jetbot_rt.train.hyperparams import PPOArgs  # noqa: E402
+from jetbot_rt.train.ppo import train  # noqa: E402
 
 NUM_STEPS = 32
 
@@ -118,16 +119,13 @@ class TestOneNode:
 
 
     def test_sweep_trains_each_seed_and_writes_one_table(self, tmp_path, one_node):
-        from jetbot_rt.train.cli import build_parser
         from jetbot_rt.train.sweep import COLUMNS, sweep
 
         out = tmp_path / "sweep"
         quick = tmp_path / "quick.toml"  # one rollout, one epoch: the sweep is the point
         quick.write_text("[train]\nnum_steps = 64\nupdate_epochs = 1\n")
-        args = build_parser().parse_args([
-            "sweep", "--timesteps", "64", "--num-envs", "1", "--seeds", "4", "7",
-            "--config", str(quick), "--eval-episodes", "1", "--out", str(out)])
-        rows = sweep(args)
+        rows = sweep("forward", out, timesteps=64, num_envs=1, seeds=[4, 7],
+                     configs=[str(quick)], eval_episodes=1)
         assert [(r["trial"], r["seed"]) for r in rows] == [("quick-seed4", 4),
                                                            ("quick-seed7", 7)]
         for row in rows:

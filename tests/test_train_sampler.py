@@ -11,9 +11,11 @@ import torch
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from jetbot_rt.train.device import to_cpu
+from jetbot_rt.train.hyperparams import PPOArgs, ppo_args
 from jetbot_rt.train.model import ActorCritic
-from jetbot_rt.train.ppo import PPOArgs, _worker_env, ppo_args, train
-from jetbot_rt.train.sampler import normalize_segment, stack_segments
+from jetbot_rt.train.ppo import train
+from jetbot_rt.train.sampler import PolicySampler, normalize_segment, stack_segments
+from jetbot_rt.train.vec_env import EnvSpec, worker_env
 from jetbot_rt.train.wrappers import normalize_rewards
 
 pytest.importorskip("pybullet")
@@ -75,7 +77,8 @@ def test_the_replayed_normaliser_is_the_vector_wrappers_step_by_step():
 @pytest.fixture(scope="module")
 def sampler():
     args = ppo_args("forward")
-    env = _worker_env("forward", args.config, args.shaping, 56, args.model, index=1)
+    env = worker_env(EnvSpec("forward", args.config, args.shaping, 56, sampler=PolicySampler,
+                             model=args.model), 1)
     env.reset(seed=3)
     yield env, args
     env.close()

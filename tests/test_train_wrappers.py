@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.train.model import ModelConfig
-from jetbot_rt.train.ppo import TASK_DEFAULTS, PPOArgs, ppo_args
+from jetbot_rt.train.hyperparams import TASK_DEFAULTS, ModelConfig, PPOArgs, ppo_args
 from jetbot_rt.train.wrappers import KeepInfo, Shaping, make_train_env, symlog
 
 pytest.importorskip("pybullet")
@@ -90,8 +89,9 @@ def test_ppo_args_precedence_dataclass_task_overrides():
 def test_every_ppo_field_is_a_flag_and_a_train_table_key(tmp_path):
     import dataclasses
 
-    from jetbot_rt.train.cli import _load_train_config, build_parser
-    from jetbot_rt.train.options import overrides
+    from jetbot_rt.train.cli import build_parser
+    from jetbot_rt.train.flags import overrides
+    from jetbot_rt.train.hyperparams import read_config_file
 
     parser = build_parser()
     help_text = parser._subparsers._group_actions[0].choices["train"].format_help()
@@ -103,7 +103,7 @@ def test_every_ppo_field_is_a_flag_and_a_train_table_key(tmp_path):
     toml = tmp_path / "train.toml"
     toml.write_text("[actions]\nmax_speed = 0.25\n[train]\ngamma = 0.9\nnum_steps = 64\n"
                     "[train.model]\nhidden = 32\n")
-    config, table = _load_train_config(str(toml))
+    config, table = read_config_file(str(toml))
     args = parser.parse_args(["train", "--task", "seek", "--num-steps", "32",
                               "--model-channels", "8", "8", "8", "--no-anneal-lr"])
     ppo = ppo_args("seek", overrides(args, table))

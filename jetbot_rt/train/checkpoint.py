@@ -33,8 +33,8 @@ from jetbot_rt import safe_file
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.safe_file import shown
 from jetbot_rt.sim.tasks import TASKS
-from jetbot_rt.train.args import OptionError, value_text
-from jetbot_rt.train.model import ActorCritic, ModelConfig
+from jetbot_rt.train.hyperparams import ModelConfig, OptionError, value_text
+from jetbot_rt.train.model import ActorCritic
 
 CHECKPOINT_FORMAT = "jetbot_rt.ppo/1"
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -94,14 +94,27 @@ def _check_tensor(name: str, value: Any, like: torch.Tensor) -> torch.Tensor:
 class TrainingState:
     """What ``--resume`` continues from, beside the network."""
 
+    path: str
+    """The checkpoint, as messages show it."""
     global_step: int
     update: int
     """Updates (PPO) or iterations (DAgger) done."""
     wall_s: float
     optimizer: dict[str, Any]
-    """Adam's ``state_dict`` as saved; checked by ``Checkpoint.load_optimizer``."""
+    """Adam's ``state_dict`` as saved; checked by ``load_optimizer``."""
     reward_rms: dict[str, float] | None
     """PPO's reward normaliser: ``mean``, ``var``, ``count``."""
+
+    def load_optimizer(self, optimizer: torch.optim.Optimizer) -> None:
+        """Load the saved Adam state into ``optimizer`` (built over the checkpoint's network
+        with the trainer's own settings) after checking that it fits: one parameter group
+        with the same settings (the learning rate excepted: the trainers set it every
+        update) and, per parameter, finite moments of its shape."""
+        try:
+            _check_optimizer(self.optimizer, optimizer)
+        except _Defect as exc:
+            raise UsageError(f"checkpoint {self.path}: optimizer {exc}") from None
+        optimizer.load_state_dict(self.optimizer)
 
 
 @dataclass(frozen=True)
@@ -145,24 +158,12 @@ class Checkpoint:
         if self.task != task:
             raise self._refuse(f"is for task {self.task!r}, not {task!r}")
         if self.algo != algo:
-            raise self._refuse(f"was written by {self.algo}, not {algo} (start a new run from "
-                               f"its network with --init)")
+            raise self._refuse(f"was written by {self.algo}, not {algo} (a new run can start "
+                               "from its network: init)")
         if self.training is None:
-            raise self._refuse("holds no optimizer state to resume from (start from its "
-                               "network with --init)")
+            raise self._refuse("holds no optimizer state to resume from (a new run can start "
+                               "from its network: init)")
         return self.training
-
-    def load_optimizer(self, optimizer: torch.optim.Optimizer) -> None:
-        """Load the saved Adam state into ``optimizer`` (built over ``model()``'s parameters
-        with the trainer's own settings) after checking that it fits: one parameter group
-        with the same settings (the learning rate excepted: the trainers set it every
-        update) and, per parameter, finite moments of its shape."""
-        saved = self.training.optimizer if self.training else None
-        try:
-            _check_optimizer(saved, optimizer)
-        except _Defect as exc:
-            raise self._refuse(f"optimizer {exc}") from None
-        optimizer.load_state_dict(saved)  # type: ignore[arg-type]
 
 
 def _check_optimizer(saved: Any, optimizer: torch.optim.Optimizer) -> None:
@@ -282,6 +283,8 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
         model_config = ModelConfig.from_dict(state["model_config"])
     except OptionError as exc:
         raise _Defect(f"model_config{exc.name.removeprefix('model')} {exc.problem}") from None
+    except UsageError as exc:
+        raise _Defect(f"model_config: {exc}") from None
     weights = state.get("model")
     if not isinstance(weights, dict):
         raise _Defect(f"model must be a dict of weights, got {value_text(weights)}")
@@ -296,7 +299,7 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
                 raise _Defect(f"reward_rms must be a dict, got {value_text(rms)}")
             rms = {"mean": _number(rms, "mean", -math.inf),
                    "var": _number(rms, "var", 0.0), "count": _number(rms, "count", 0.0)}
-        training = TrainingState(global_step=_count(state, "global_step"),
+        training = TrainingState(path=shown_path, global_step=_count(state, "global_step"),
                                  update=_count(state, "update"),
                                  wall_s=_number(state, "wall_s", 0.0),
                                  optimizer=state["optimizer"], reward_rms=rms)

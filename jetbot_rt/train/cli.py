@@ -16,9 +16,13 @@ import os
 import shlex
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from jetbot_rt.cli import HelpFormatter, OneLineParser, plain
 from jetbot_rt.errors import EXIT_OK, EXIT_USAGE, UsageError
+
+if TYPE_CHECKING:
+    from jetbot_rt.train.hyperparams import OptionError
 
 TRAIN_EXTRA_MODULES = ("torch", "onnx", "gymnasium", "matplotlib", "tqdm", "pybullet")
 EXIT_INTERRUPTED = 130
@@ -30,9 +34,25 @@ TASK_ALGO = {"seek": "dagger"}
 """The default --algo per task (docs/TRAINING.md, "Training seek by DAgger", says why)."""
 
 
+FLAG_OF = {"num_workers": "--num-envs", "ray_address": "--ray"}
+"""Library parameters whose flag is not their name spelled as a flag."""
+
+
 def flag(name: str) -> str:
     """The command-line flag of a trainer parameter (``model.hidden``: ``--model-hidden``)."""
-    return "--" + name.replace(".", "-").replace("_", "-")
+    return FLAG_OF.get(name) or "--" + name.replace(".", "-").replace("_", "-")
+
+
+def spelled(error: OptionError, table: dict[str, Any], args: argparse.Namespace) -> UsageError:
+    """``error`` as the user wrote the parameter: its flag, or ``[train] NAME`` (``[train.model]
+    NAME``) where the config's table set it and no flag did (flags given are the only
+    attributes of ``args``: their default is ``SUPPRESS``)."""
+    section, _, key = error.name.rpartition(".")
+    given = table.get("model", {}) if section == "model" else table
+    if isinstance(given, dict) and key in given and error.name not in vars(args):
+        where = "[train.model]" if section == "model" else "[train]"
+        return UsageError(f"{where} {key} {error.problem}")
+    return UsageError(f"{flag(error.name)} {error.problem}")
 
 
 def _task_list() -> str:
@@ -44,8 +64,7 @@ def _task_list() -> str:
 def build_parser() -> argparse.ArgumentParser:
     from jetbot_rt.sim.tasks import TASKS
     from jetbot_rt.train.evaluate import ABLATIONS
-    from jetbot_rt.train.options import add_ppo_arguments, positive_int
-    from jetbot_rt.train.sweep import add_parser as add_sweep_parser
+    from jetbot_rt.train.flags import add_ppo_arguments, positive_int
 
     formatter = HelpFormatter  # defaults shown, never "(default: None)"
     parser = OneLineParser(prog="jetbot-train", description=plain(__doc__.splitlines()[0]),
@@ -105,25 +124,32 @@ def build_parser() -> argparse.ArgumentParser:
                           help="record each episode into DIR/episode-<seed>/ as run --record "
                                "does (look at it with jetbot-rt report)")
     evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_sweep_parser(sub, tasks)
+    _add_sweep_parser(sub, tasks)
     return parser
 
 
-def _load_train_config(path: str | None) -> tuple[object, dict]:
-    from jetbot_rt.config import from_dict, read_toml
-
-    if path is None:
-        from jetbot_rt.config import Config
-
-        return Config(), {}
-    data = read_toml(path)
-    table = data.get("train", {})
-    if not isinstance(table, dict):
-        raise UsageError(f"config {path}: [train] must be a table")
-    try:
-        return from_dict(data), table
-    except UsageError as exc:
-        raise UsageError(f"config {path}: {exc}") from None
+def _add_sweep_parser(sub: Any, tasks: list[str]) -> None:
+    sweep = sub.add_parser(
+        "sweep", help="train several seeds / configs across a Ray cluster, one results table",
+        description="Train several seeds (and configs, e.g. randomization ranges) at once "
+        "across a Ray cluster, evaluate each policy, print one table of results. Each trial "
+        "is a train run with the task's PPO defaults and its config's [train] table.")
+    sweep.add_argument("--task", default="forward", choices=tasks, help="the task to learn")
+    sweep.add_argument("--timesteps", type=int, help="env steps per trial (default: the "
+                       "task's, or the config's [train] total_timesteps)")
+    sweep.add_argument("--num-envs", type=int, default=2,
+                       help="env processes per trial (and the CPUs it asks Ray for)")
+    sweep.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3],
+                       help="one trial per seed and config")
+    sweep.add_argument("--config", nargs="+", metavar="TOML",
+                       help="one or more TOML configs (e.g. [randomize] ranges, a [train] "
+                            "table); each is trained with every seed and evaluated under "
+                            "itself (default: the built-in config)")
+    sweep.add_argument("--eval-episodes", type=int, default=20,
+                       help="evaluation episodes per trial")
+    sweep.add_argument("--ray", nargs="?", const="local", default="local", metavar="ADDRESS",
+                       help="Ray cluster: 'local' (Ray on this machine), 'auto' or HOST:PORT")
+    sweep.add_argument("--out", required=True, help="output directory")
 
 
 def _resume_command(argv: list[str]) -> str:
@@ -135,21 +161,21 @@ def _resume_command(argv: list[str]) -> str:
 
 def _train(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.train import dagger, ppo
-    from jetbot_rt.train.options import overrides
+    from jetbot_rt.train.flags import overrides
+    from jetbot_rt.train.hyperparams import OptionError, dagger_args, ppo_args, read_config_file
     from jetbot_rt.train.ray_workers import WorkersLost
+    from jetbot_rt.train.run_dir import Interrupted
 
-    config, table = _load_train_config(args.config)
+    config, table = read_config_file(args.config)
     algo = args.algo or TASK_ALGO.get(args.task, "ppo")
-    if algo == "dagger":
-        options: object = dagger.dagger_args(args.task, overrides(args, table, algo))
-        train = dagger.train
-    else:
-        options = ppo.ppo_args(args.task, overrides(args, table, algo))
-        train = ppo.train
-    options.config = config  # type: ignore[attr-defined]
+    build, train = (dagger_args, dagger.train) if algo == "dagger" else (ppo_args, ppo.train)
     try:
-        summary = train(options)  # type: ignore[arg-type]
-    except ppo.Interrupted as stop:
+        options = build(args.task, overrides(args, table, algo))
+        options.config = config
+        summary = train(options)
+    except OptionError as exc:
+        raise spelled(exc, table, args) from None
+    except Interrupted as stop:
         summary = stop.summary
         print(f"\ninterrupted at {summary['global_step']} steps; wrote {summary['checkpoint']}, "
               f"{summary['policy']} and the learning curve. Resume with:\n"
@@ -209,7 +235,9 @@ def _eval(args: argparse.Namespace, argv: list[str]) -> int:
 def _sweep(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.train.sweep import sweep
 
-    sweep(args)
+    sweep(args.task, args.out, seeds=args.seeds, configs=args.config or [None],
+          num_envs=args.num_envs, timesteps=args.timesteps, eval_episodes=args.eval_episodes,
+          ray_address=args.ray)
     print((Path(args.out) / "sweep.md").read_text(), end="")
     return EXIT_OK
 
@@ -228,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         print("jetbot-train: error: needs the train extra (missing "
               f"{', '.join(missing)}): pip install 'jetbot_rt[sim,train]'", file=sys.stderr)
         return EXIT_USAGE
-    from jetbot_rt.train.args import OptionError
+    from jetbot_rt.train.hyperparams import OptionError
 
     try:
         args = build_parser().parse_args(argv)

@@ -12,36 +12,23 @@ needs nothing but the image. docs/TRAINING.md ("Training seek by DAgger") says w
 
 from __future__ import annotations
 
-import csv
 import time
-from dataclasses import asdict
-from functools import partial
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
+from gymnasium.vector import VectorEnv
 from tqdm import tqdm
 
-from jetbot_rt.errors import UsageError
-from jetbot_rt.train.args import DAggerArgs, dagger_args
-from jetbot_rt.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
+from jetbot_rt.config import Config
+from jetbot_rt.sim.tasks import get_task
 from jetbot_rt.train.dagger_sampler import LabelSampler
-from jetbot_rt.train.env import get_task, max_speed_of
+from jetbot_rt.train.env import max_speed_of
 from jetbot_rt.train.expert import Expert
-from jetbot_rt.train.export import export_model
-from jetbot_rt.train.model import ActorCritic, ModelConfig
-from jetbot_rt.train.ppo import (
-    CURVE_NAME,
-    METRICS_NAME,
-    POLICY_NAME,
-    Interrupted,
-    _close,
-    _prepare_out,
-    _worker_env,
-    _write_metrics_row,
-)
+from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig
+from jetbot_rt.train.model import ActorCritic
+from jetbot_rt.train.run_dir import Interrupted, Panel, Progress, RunDirectory, starting_model
+from jetbot_rt.train.vec_env import EnvSpec, close_vector_env, make_vector_env
 from jetbot_rt.train.wrappers import Shaping
 
 METRIC_FIELDS = ("iteration", "global_step", "wall_s", "collect_s", "regress_s", "dataset",
@@ -141,143 +128,103 @@ def learning_rate_at(args: DAggerArgs, iteration: int) -> float:
                                           / (args.iterations - 1))
 
 
-def _labelling_env(task: str, config: Any, image_size: int, model: ModelConfig,
-                   index: int) -> LabelSampler:
-    """Built inside each worker (see ``ppo._worker_env``)."""
-    return LabelSampler(_worker_env(task, config, NO_SHAPING, image_size, keep=EXPERT_INFO),
-                        model, index)
+def labelling_spec(task: str, config: Config, model: ModelConfig) -> EnvSpec:
+    """Envs driven by a ``LabelSampler`` each, with the task's reward as is (DAgger reads only
+    the expert's inputs and the outcome)."""
+    return EnvSpec(task, config, NO_SHAPING, model.image_size, keep=EXPERT_INFO,
+                   sampler=LabelSampler, model=model)
 
 
-def make_envs(args: DAggerArgs, model: ModelConfig) -> VectorEnv:
-    factories = [partial(_labelling_env, args.task, args.config, model.image_size, model, j)
-                 for j in range(args.num_envs)]
-    if args.workers == 0:
-        return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
-    return AsyncVectorEnv(factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP,
-                          shared_memory=True)
+CURVE = (Panel("success_rate", "success rate (rollouts)", ylim=(-0.05, 1.05), style="o-",
+               color="tab:green", label="student drives"),
+         Panel("loss", "imitation loss (MSE)", scale=("log", {}), style="o-"))
 
 
-def plot_curve(metrics_csv: Path, png: Path) -> None:
-    """Student success per iteration (its own rollouts) and the regression loss."""
-    import matplotlib
+class _Run:
+    """One DAgger run's state between its iterations."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    def __init__(self, options: DAggerArgs) -> None:
+        options.validate()
+        self.options = options
+        self.run = RunDirectory(options.out)
+        saved = self.run.prepare(options.resume)
+        torch.manual_seed(options.seed)
+        model, resumed = starting_model(options, saved, "dagger")
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=options.learning_rate)
+        self.progress = Progress()
+        if resumed is not None:
+            resumed.load_optimizer(self.optimizer)
+            self.progress = Progress(resumed.global_step, resumed.update, resumed.wall_s,
+                                     start_step=resumed.global_step)
+        self.model = model.eval()
+        self.rng = np.random.default_rng(options.seed + self.progress.update)
+        self.max_speed = max_speed_of(options.config, get_task(options.task))
+        self.expert = Expert(stop_distance=options.stop_distance,
+                             min_forward=options.min_forward, search_left=options.search_left,
+                             search_right=options.search_right,
+                             backoff_distance=options.backoff_distance)
+        self.envs: VectorEnv | None = None
 
-    with metrics_csv.open() as handle:
-        rows = list(csv.DictReader(handle))
-    fig, (ax_succ, ax_loss) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
-    done = [r for r in rows if r["success_rate"]]
-    ax_succ.plot([int(r["global_step"]) for r in done],
-                 [float(r["success_rate"]) for r in done], "o-", color="tab:green",
-                 label="student drives")
-    ax_succ.set_ylim(-0.05, 1.05)
-    ax_succ.set_ylabel("success rate (rollouts)")
-    ax_succ.legend(loc="lower right")
-    ax_loss.plot([int(r["global_step"]) for r in rows], [float(r["loss"]) for r in rows], "o-")
-    ax_loss.set_yscale("log")
-    ax_loss.set_ylabel("imitation loss (MSE)")
-    ax_loss.set_xlabel("environment steps")
-    fig.suptitle("jetbot-train DAgger learning curve")
-    fig.tight_layout()
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
+    def iteration(self, data: Dataset, bar: tqdm) -> dict[str, Any]:
+        """Collect an iteration's episodes in the workers, regress on the aggregate; the
+        metrics row."""
+        options, progress = self.options, self.progress
+        assert self.envs is not None
+        torch.set_num_threads(1)
+        began = time.perf_counter()
+        row = collect(self.envs, self.model, self.expert, data, options, progress.update, bar)
+        steps = row.pop("steps")
+        torch.set_num_threads(options.torch_threads)
+        for group in self.optimizer.param_groups:
+            group["lr"] = learning_rate_at(options, progress.update)
+        collected = time.perf_counter()
+        loss = regress(self.model, self.optimizer, data, options, self.rng)
+        progress.update, progress.global_step = progress.update + 1, progress.global_step + steps
+        row.update(iteration=progress.update, global_step=progress.global_step,
+                   dataset=len(data), loss=round(loss, 5), collect_s=round(collected - began, 1),
+                   regress_s=round(time.perf_counter() - collected, 1),
+                   wall_s=round(progress.wall_s(), 1))
+        self.run.append_metrics(row, METRIC_FIELDS)
+        if options.snapshots and progress.update % options.snapshots == 0:
+            self.run.export_policy(self.model.eval(), options.task, self.max_speed,
+                                   name=f"policy_{progress.update}.onnx")
+        return row
+
+    def save(self) -> None:
+        self.run.save_checkpoint(algo="dagger", options=self.options, model=self.model,
+                                 optimizer=self.optimizer, progress=self.progress,
+                                 max_speed=self.max_speed)
 
 
-def train(args: DAggerArgs) -> dict[str, Any]:
-    """Run DAgger; writes checkpoint, ONNX, metrics and curve to ``args.out``; returns a
+def train(options: DAggerArgs) -> dict[str, Any]:
+    """Run DAgger; writes checkpoint, ONNX, metrics and curve to ``options.out``; returns a
     summary. Ctrl-C: writes them as they are and raises ``Interrupted``."""
-    if args.task != "seek":
-        raise UsageError(f"--algo dagger has an expert for task seek only, not {args.task!r}")
-    if args.num_envs <= 0:
-        raise UsageError(f"--num-envs must be > 0, got {args.num_envs}")
-    if args.workers not in (None, 0, args.num_envs):
-        raise UsageError(f"--workers must be 0 or --num-envs ({args.num_envs}), got "
-                         f"{args.workers}")
-    out = Path(args.out)
-    _prepare_out(out)
-    checkpoint_path, metrics_path = out / CHECKPOINT_NAME, out / METRICS_NAME
-    torch.manual_seed(args.seed)
-    model = ActorCritic(args.model)
-    if args.init:
-        model = load_checkpoint(args.init).model()
-    optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
-    iteration, global_step, wall_before = 0, 0, 0.0
-    if args.resume and checkpoint_path.exists():
-        saved = load_checkpoint(checkpoint_path)
-        resume_state = saved.check_resumable(args.task, "dagger")
-        model = saved.model()
-        optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
-        saved.load_optimizer(optimizer)
-        iteration, global_step, wall_before = (resume_state.update, resume_state.global_step,
-                                               resume_state.wall_s)
-    elif metrics_path.exists():
-        metrics_path.unlink()
-    model.eval()
-    rng = np.random.default_rng(args.seed + iteration)
-    max_speed = max_speed_of(args.config, get_task(args.task))
-    expert = Expert(stop_distance=args.stop_distance, min_forward=args.min_forward,
-                    search_left=args.search_left, search_right=args.search_right,
-                    backoff_distance=args.backoff_distance)
-    start = time.perf_counter()
-    total = args.iterations * args.steps_per_iteration
-    bar = tqdm(total=total, initial=min(global_step, total), disable=not args.progress,
-               unit="step", dynamic_ncols=True)
+    run = _Run(options)
+    progress = run.progress
+    total = options.iterations * options.steps_per_iteration
+    bar = tqdm(total=total, initial=min(progress.global_step, total),
+               disable=not options.progress, unit="step", dynamic_ncols=True)
     interrupted = False
-    envs: VectorEnv | None = None
-
-    def save() -> None:
-        save_checkpoint(checkpoint_path, {
-            "task": args.task, "algo": "dagger", "model": model.state_dict(),
-            "model_config": model.config.to_dict(), "optimizer": optimizer.state_dict(),
-            "global_step": global_step, "update": iteration,
-            "wall_s": wall_before + time.perf_counter() - start, "max_speed": max_speed,
-            "args": {k: v for k, v in asdict(args).items() if k not in ("config", "model")},
-        })
-
     try:  # from the workers' start on, Ctrl-C saves and prints the --resume command
-        envs = make_envs(args, model.config)
-        data = Dataset(envs.single_observation_space.shape)
-        while iteration < args.iterations:
-            torch.set_num_threads(1)
-            began = time.perf_counter()
-            row = collect(envs, model, expert, data, args, iteration, bar)
-            global_step += row.pop("steps")
-            torch.set_num_threads(args.torch_threads)
-            for group in optimizer.param_groups:
-                group["lr"] = learning_rate_at(args, iteration)
-            collected = time.perf_counter()
-            loss = regress(model, optimizer, data, args, rng)
-            iteration += 1
-            row.update(iteration=iteration, global_step=global_step, dataset=len(data),
-                       loss=round(loss, 5), collect_s=round(collected - began, 1),
-                       regress_s=round(time.perf_counter() - collected, 1),
-                       wall_s=round(wall_before + time.perf_counter() - start, 1))
-            _write_metrics_row(metrics_path, row, METRIC_FIELDS)
-            if args.snapshots and iteration % args.snapshots == 0:
-                export_model(model.eval(), out / f"policy_{iteration}.onnx", task=args.task,
-                             max_speed=max_speed)
+        run.envs = make_vector_env(labelling_spec(options.task, options.config,
+                                                  run.model.config),
+                                   options.num_envs, options.workers)
+        data = Dataset(run.envs.single_observation_space.shape)
+        while progress.update < options.iterations:
+            row = run.iteration(data, bar)
             bar.set_postfix(succ=row["success_rate"], loss=row["loss"], refresh=False)
-            save()
+            run.save()
     except KeyboardInterrupt:
         interrupted = True
-        save()
+        run.save()
     finally:
         bar.close()
-        # After Ctrl-C the workers are ended, not waited for: a whole iteration's
-        # collection is one call to them, and close() would wait for it to finish.
-        if envs is not None:
-            _close(envs, interrupted)
-    export_model(model.eval(), out / POLICY_NAME, task=args.task, max_speed=max_speed)
-    if metrics_path.exists():
-        plot_curve(metrics_path, out / CURVE_NAME)
-    wall = wall_before + time.perf_counter() - start
-    summary = {"global_step": global_step, "updates": iteration, "wall_s": wall,
-               "steps_per_s": round(global_step / max(wall, 1e-9), 1),
-               "checkpoint": str(checkpoint_path), "policy": str(out / POLICY_NAME)}
+        if run.envs is not None:
+            close_vector_env(run.envs, interrupted)
+    run.run.export_policy(run.model.eval(), options.task, run.max_speed)
+    run.run.plot_curve("jetbot-train DAgger learning curve", CURVE)
+    wall = progress.wall_s()
+    summary = run.run.summary(progress, round(progress.global_step / max(wall, 1e-9), 1))
     if interrupted:
         raise Interrupted(summary)
     return summary
-
-
-__all__ = ["DAggerArgs", "Dataset", "dagger_args", "regress", "train"]

@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 
 from jetbot_rt.train.expert import Expert
-from jetbot_rt.train.model import ModelConfig
+from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.sampler import PolicySampler
 
 

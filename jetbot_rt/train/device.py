@@ -13,15 +13,15 @@ from typing import Any
 
 import torch
 
-from jetbot_rt.errors import UsageError
+from jetbot_rt.train.hyperparams import OptionError
 
 DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:\d+)?")
 
 
 def resolve_device(name: str) -> torch.device:
-    """The ``torch.device`` for ``--device NAME``; UsageError if it cannot be had here."""
+    """The ``torch.device`` called ``name``; ``OptionError`` if it cannot be had here."""
     if not DEVICE_PATTERN.fullmatch(name):
-        raise UsageError(f"--device must be auto, cpu, cuda or cuda:N, got {name!r}")
+        raise OptionError("device", f"must be auto, cpu, cuda or cuda:N, got {name!r}")
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
@@ -29,12 +29,12 @@ def resolve_device(name: str) -> torch.device:
         if not torch.cuda.is_available():
             why = ("this torch is built without CUDA" if torch.version.cuda is None
                    else "no CUDA GPU is visible")
-            raise UsageError(f"--device {name}: CUDA is not available ({why}); "
-                             f"use --device cpu or auto")
+            raise OptionError("device", f"{name}: CUDA is not available ({why}); use cpu or "
+                                        "auto")
         count = torch.cuda.device_count()
         if device.index is not None and device.index >= count:
-            raise UsageError(f"--device {name}: this machine has {count} CUDA device(s) "
-                             f"(cuda:0 .. cuda:{count - 1})")
+            raise OptionError("device", f"{name}: this machine has {count} CUDA device(s) "
+                                        f"(cuda:0 .. cuda:{count - 1})")
     return device
 
 

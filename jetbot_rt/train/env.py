@@ -19,9 +19,7 @@ from gymnasium import spaces
 from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.config import Config, SimConfig
 from jetbot_rt.errors import UsageError
-from jetbot_rt.sim.tasks import TASKS, Scene, Task, get_task, outcome, sample_scene
-
-__all__ = ["POLICY_IMAGE_SIZE", "TASKS", "JetbotEnv", "Task", "get_task", "make_task_env"]
+from jetbot_rt.sim.tasks import Scene, Task, get_task, outcome, sample_scene
 
 POLICY_IMAGE_SIZE = 56
 """Side of the square camera image the trainer renders and its networks take (the one

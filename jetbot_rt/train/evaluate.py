@@ -24,9 +24,10 @@ from typing import Any
 import numpy as np
 
 from jetbot_rt.config import Config
-from jetbot_rt.errors import UsageError
 from jetbot_rt.policy import OnnxPolicy, resolve_policy_path
-from jetbot_rt.train.env import JetbotEnv, action_pipeline_of, get_task
+from jetbot_rt.sim.tasks import get_task
+from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
+from jetbot_rt.train.hyperparams import OptionError
 from jetbot_rt.train.video import EpisodeRecording, timed
 
 ABLATIONS = ("blank", "bgr", "pixel-range", "constant-forward")
@@ -77,7 +78,7 @@ def load_policy(path: str | Path, config: Config, single_thread: bool = True,
     """``OnnxPolicy.load`` (all of its checks); with ``single_thread`` onnxruntime uses one
     thread, so parallel eval workers do not fight over cores. ``ablate``: see the module."""
     if ablate is not None and ablate not in ABLATIONS:
-        raise UsageError(f"unknown ablation {ablate!r} (known: {', '.join(ABLATIONS)})")
+        raise OptionError("ablate", f"must be one of {', '.join(ABLATIONS)}, got {ablate!r}")
     threads = 1 if single_thread else None
     policy = OnnxPolicy.load(path, config.policy, threads=threads)
     if ablate == "constant-forward":
@@ -155,9 +156,9 @@ def evaluate(
     from tqdm import tqdm
 
     if episodes <= 0:
-        raise UsageError(f"--episodes must be > 0, got {episodes}")
+        raise OptionError("episodes", f"must be > 0, got {episodes}")
     if num_workers <= 0:
-        raise UsageError(f"--num-envs must be > 0, got {num_workers}")
+        raise OptionError("num_workers", f"must be > 0, got {num_workers}")
     spec = get_task(task)
     config = config or Config()
     path = resolve_policy_path(policy_path, task)

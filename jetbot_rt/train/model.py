@@ -17,9 +17,7 @@ import math
 import torch
 from torch import nn
 
-from jetbot_rt.train.args import LEGACY_IMAGE_SIZE, LEGACY_POOL, ModelConfig
-
-__all__ = ["LEGACY_IMAGE_SIZE", "LEGACY_POOL", "ActorCritic", "ModelConfig", "normal_log_prob"]
+from jetbot_rt.train.hyperparams import ModelConfig
 
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 

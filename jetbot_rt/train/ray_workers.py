@@ -36,7 +36,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
-from jetbot_rt.errors import UsageError, first_line
+from jetbot_rt.errors import first_line
+from jetbot_rt.train.hyperparams import OptionError
 
 PROBE_TIMEOUT_S = 5.0
 """How long ``connect`` waits for a TCP answer from a cluster address (Ray itself retries an
@@ -56,8 +57,8 @@ def _import_ray() -> Any:
     try:
         import ray
     except ImportError:
-        raise UsageError("--ray needs Ray: pip install 'jetbot_rt[cluster]' "
-                         "(on every node of the cluster)") from None
+        raise OptionError("ray", "needs Ray: pip install 'jetbot_rt[cluster]' (on every node "
+                                 "of the cluster)") from None
     return ray
 
 
@@ -118,20 +119,21 @@ def split(num_envs: int, workers: int) -> list[range]:
 
 
 def _probe(address: str) -> None:
-    """UsageError unless something accepts a TCP connection at ``[ray://]HOST:PORT``."""
+    """``OptionError`` unless something accepts a TCP connection at ``[ray://]HOST:PORT``."""
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
-        raise UsageError(f"--ray {address}: expected local, auto, HOST:PORT or "
-                         f"ray://HOST:PORT")
+        raise OptionError("ray", f"{address}: expected local, auto, HOST:PORT or "
+                                 f"ray://HOST:PORT")
     try:
         socket.create_connection((host.strip("[]"), int(port)), PROBE_TIMEOUT_S).close()
     except OSError as exc:
-        raise UsageError(f"--ray {address}: no Ray head answers there ({exc.strerror or exc}); "
-                         f"start one with `ray start --head` (docs/TRAINING.md)") from None
+        raise OptionError("ray", f"{address}: no Ray head answers there "
+                                 f"({exc.strerror or exc}); start one with `ray start --head` "
+                                 "(docs/TRAINING.md)") from None
 
 
 def connect(address: str) -> bool:
-    """``ray.init`` for ``--ray ADDRESS``: ``local`` starts Ray on this machine, anything
+    """``ray.init`` for the ``ray`` option's address: ``local`` starts Ray on this machine, anything
     else (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``) joins that cluster. Returns whether
     this call started the connection (then ``RayVectorEnv.close`` ends it)."""
     ray = _import_ray()
@@ -145,7 +147,7 @@ def connect(address: str) -> bool:
     try:
         ray.init(**kwargs)
     except (ConnectionError, ValueError) as exc:  # no cluster; ray:// without ray[client]
-        raise UsageError(f"--ray {address}: {first_line(exc)}") from None
+        raise OptionError("ray", f"{address}: {first_line(exc)}") from None
     return True
 
 
@@ -162,10 +164,10 @@ class RayVectorEnv(VectorEnv):
         cpus = int(ray.cluster_resources().get("CPU", 0))
         workers = workers or max(1, min(self.num_envs, cpus))
         if workers > self.num_envs:
-            raise UsageError(f"--workers {workers} is more than --num-envs {self.num_envs}")
+            raise OptionError("workers", f"{workers} is more than num_envs {self.num_envs}")
         if workers > cpus:
-            raise UsageError(f"--workers {workers} need one CPU each; the Ray cluster has "
-                             f"{cpus}")
+            raise OptionError("workers", f"{workers} need one CPU each; the Ray cluster has "
+                                         f"{cpus}")
         self.blocks = split(self.num_envs, workers)
         self.max_restarts = max_restarts
         self.restart_timeout = restart_timeout
@@ -181,9 +183,9 @@ class RayVectorEnv(VectorEnv):
         except ray.exceptions.RayActorError as exc:
             self.close_extras()
             lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-            raise UsageError(f"--ray: an env worker could not start ({lines[-1][:200]}); "
-                             f"every node needs jetbot_rt[sim,train,cluster] of this "
-                             f"version") from None
+            raise OptionError("ray", f"cluster: an env worker could not start "
+                                     f"({lines[-1][:200]}); every node needs "
+                                     "jetbot_rt[sim,train,cluster] of this version") from None
         self.single_observation_space = single_obs
         self.single_action_space = single_act
         self.observation_space = batch_space(single_obs, self.num_envs)

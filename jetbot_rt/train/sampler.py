@@ -26,7 +26,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from jetbot_rt.train.model import LOG_SQRT_2PI, ActorCritic, ModelConfig
+from jetbot_rt.train.hyperparams import ModelConfig
+from jetbot_rt.train.model import LOG_SQRT_2PI, ActorCritic
 
 
 class PolicySampler(gym.Wrapper):

@@ -12,46 +12,22 @@ elsewhere (Ray's task retries).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import tempfile
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from jetbot_rt.errors import UsageError
+from jetbot_rt.train.hyperparams import OptionError, PPOArgs, ppo_args, read_config_file
+from jetbot_rt.train.run_dir import METRICS_NAME, RUN_FILES, writable_directory
 
-TRIAL_FILES = ("checkpoint.pt", "policy.onnx", "metrics.csv", "learning_curve.png")
 COLUMNS = ("trial", "config", "seed", "eval_success_rate", "eval_mean_return",
            "train_success_rate", "global_step", "steps_per_s", "wall_s", "node")
 
 
-def add_parser(sub: Any, tasks: list[str]) -> argparse.ArgumentParser:
-    sweep = sub.add_parser(
-        "sweep", help="train several seeds / configs across a Ray cluster, one results table",
-        description="Train several seeds (and configs, e.g. randomization ranges) at once "
-        "across a Ray cluster, evaluate each policy, print one table of results. Each trial "
-        "is a train run with the task's PPO defaults and its config's [train] table.")
-    sweep.add_argument("--task", default="forward", choices=tasks, help="the task to learn")
-    sweep.add_argument("--timesteps", type=int, help="env steps per trial (default: the "
-                       "task's, or the config's [train] total_timesteps)")
-    sweep.add_argument("--num-envs", type=int, default=2,
-                       help="env processes per trial (and the CPUs it asks Ray for)")
-    sweep.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3],
-                       help="one trial per seed and config")
-    sweep.add_argument("--config", nargs="+", metavar="TOML",
-                       help="one or more TOML configs (e.g. [randomize] ranges, a [train] "
-                            "table); each is trained with every seed and evaluated under "
-                            "itself (default: the built-in config)")
-    sweep.add_argument("--eval-episodes", type=int, default=20,
-                       help="evaluation episodes per trial")
-    sweep.add_argument("--ray", nargs="?", const="local", default="local", metavar="ADDRESS",
-                       help="Ray cluster: 'local' (Ray on this machine), 'auto' or HOST:PORT")
-    sweep.add_argument("--out", required=True, help="output directory")
-    return sweep
-
-
-def run_trial(name: str, args: Any, config_name: str, eval_episodes: int) -> dict[str, Any]:
+def run_trial(name: str, options: PPOArgs, config_name: str,
+              eval_episodes: int) -> dict[str, Any]:
     """One trial on whichever node Ray chose: train, evaluate, hand the files back."""
     import ray
 
@@ -59,14 +35,14 @@ def run_trial(name: str, args: Any, config_name: str, eval_episodes: int) -> dic
     from jetbot_rt.train.ppo import train
 
     with tempfile.TemporaryDirectory(prefix=f"jetbot-sweep-{name}-") as out:
-        summary = train(replace(args, out=out))
-        result = evaluate(summary["policy"], task=args.task, episodes=eval_episodes,
-                          num_workers=args.num_envs, config=args.config)
-        with (Path(out) / "metrics.csv").open() as handle:
+        summary = train(replace(options, out=out))
+        result = evaluate(summary["policy"], task=options.task, episodes=eval_episodes,
+                          num_workers=options.num_envs, config=options.config)
+        with (Path(out) / METRICS_NAME).open() as handle:
             last = list(csv.DictReader(handle))[-1]
-        files = {f: (Path(out) / f).read_bytes() for f in TRIAL_FILES if (Path(out) / f).exists()}
+        files = {f: (Path(out) / f).read_bytes() for f in RUN_FILES if (Path(out) / f).exists()}
     row = {
-        "trial": name, "config": config_name, "seed": args.seed,
+        "trial": name, "config": config_name, "seed": options.seed,
         "eval_success_rate": result["success_rate"],
         "eval_mean_return": round(float(result["mean_return"]), 1),
         "train_success_rate": last.get("success_rate", ""),
@@ -77,39 +53,53 @@ def run_trial(name: str, args: Any, config_name: str, eval_episodes: int) -> dic
     return {"row": row, "files": files}
 
 
-def sweep(namespace: argparse.Namespace) -> list[dict[str, Any]]:
-    from jetbot_rt.train.cli import _load_train_config
-    from jetbot_rt.train.ppo import _prepare_out, ppo_args
-    from jetbot_rt.train.ray_workers import connect
+def trial_options(task: str, seeds: Sequence[int], configs: Sequence[str | None],
+                  num_envs: int, timesteps: int | None) -> list[tuple[str, str, PPOArgs]]:
+    """(trial name, config name, its ``PPOArgs``) for every config and seed: the task's PPO
+    defaults, the config's ``[train]`` table, then the sweep's own settings."""
+    named = [(Path(p).stem if p else "default", *read_config_file(p)) for p in configs]
+    if len({name for name, _, _ in named}) != len(named):
+        raise OptionError("config", "files must have different names (they name the trials)")
+    trials = []
+    for config_name, config, table in named:
+        for seed in seeds:
+            settings = {**table, "num_envs": num_envs, "seed": seed,
+                        "workers": 0 if num_envs == 1 else None, "ray": None,
+                        "progress": False, "update_threads": num_envs,
+                        "device": "cpu"}  # Ray gives a trial CPUs, not a GPU
+            if timesteps is not None:
+                settings["total_timesteps"] = timesteps
+            options = ppo_args(task, settings)
+            options.config = config
+            trials.append((f"{config_name}-seed{seed}", config_name, options))
+    return trials
 
-    for name, value in (("--timesteps", namespace.timesteps), ("--num-envs", namespace.num_envs),
-                        ("--eval-episodes", namespace.eval_episodes)):
+
+def sweep(task: str, out: str | Path, *, seeds: Sequence[int] = (1, 2, 3),
+          configs: Sequence[str | None] = (None,), num_envs: int = 2,
+          timesteps: int | None = None, eval_episodes: int = 20,
+          ray_address: str = "local") -> list[dict[str, Any]]:
+    """Train a trial per config (TOML files; None: the built-in config) and seed on the Ray
+    cluster at ``ray_address``, ``num_envs`` CPUs each; evaluate each policy on
+    ``eval_episodes`` episodes; the files to ``out/<trial>/``, the table to ``out/sweep.csv``
+    and ``out/sweep.md``. Returns the table's rows."""
+    for name, value in (("timesteps", timesteps), ("num_envs", num_envs),
+                        ("eval_episodes", eval_episodes)):
         if value is not None and value <= 0:
-            raise UsageError(f"{name} must be > 0, got {value}")
-    out = Path(namespace.out)
-    _prepare_out(out)
-    paths = namespace.config or [None]
-    configs = [(Path(p).stem if p else "default", *_load_train_config(p)) for p in paths]
-    if len({name for name, _, _ in configs}) != len(configs):
-        raise UsageError("--config files must have different names (they name the trials)")
-    owns = connect(namespace.ray)
+            raise OptionError(name, f"must be > 0, got {value}")
+    out = Path(out)
+    writable_directory(out)
+    trials = trial_options(task, seeds, configs, num_envs, timesteps)
+    from jetbot_rt.train.ray_workers import connect  # imports ray
+
+    owns = connect(ray_address)
     import ray
 
+    refs: list[Any] = []
     try:
-        remote = ray.remote(num_cpus=namespace.num_envs, max_retries=2)(run_trial)
-        refs = []
-        for config_name, config, table in configs:
-            for seed in namespace.seeds:
-                name = f"{config_name}-seed{seed}"
-                options = {**table, "num_envs": namespace.num_envs, "seed": seed,
-                           "workers": 0 if namespace.num_envs == 1 else None, "ray": None,
-                           "progress": False, "update_threads": namespace.num_envs,
-                           "device": "cpu"}  # Ray gives a trial CPUs, not a GPU
-                if namespace.timesteps is not None:
-                    options["total_timesteps"] = namespace.timesteps
-                args = ppo_args(namespace.task, options)
-                args.config = config
-                refs.append(remote.remote(name, args, config_name, namespace.eval_episodes))
+        remote = ray.remote(num_cpus=num_envs, max_retries=2)(run_trial)
+        refs = [remote.remote(name, options, config_name, eval_episodes)
+                for name, config_name, options in trials]
         results = ray.get(refs)
     except KeyboardInterrupt:
         for ref in refs:
@@ -138,6 +128,3 @@ def write_table(rows: list[dict[str, Any]], out: Path) -> None:
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + " --- |" * len(COLUMNS)]
     lines += ["| " + " | ".join(str(row[c]) for c in COLUMNS) + " |" for row in rows]
     (out / "sweep.md").write_text("\n".join(lines) + "\n")
-
-
-__all__ = ["add_parser", "run_trial", "sweep", "write_table"]

@@ -1,5 +1,6 @@
-"""``PPOArgs`` on the command line and in a ``[train]`` TOML table: one flag per field, its
-help the field's docstring, its default the dataclass's (and the task's, where it differs).
+"""The trainers' hyperparameters as ``jetbot-train train`` flags: one flag per field of
+``PPOArgs``, ``DAggerArgs`` and ``ModelConfig``, its help the field's docstring, its default
+the dataclass's (and the task's, where it differs).
 
 Precedence: ``PPOArgs`` defaults < ``TASK_DEFAULTS[task]`` < the ``[train]`` table of
 ``--config`` < flags given on the command line.
@@ -15,14 +16,14 @@ import itertools
 import textwrap
 from typing import Any
 
+from jetbot_rt.errors import UsageError
+from jetbot_rt.train.hyperparams import SIGNED, TASK_DEFAULTS, DAggerArgs, ModelConfig, PPOArgs
+
 SKIPPED = ("task", "config", "model")
 """Fields with flags of their own: ``--task``, ``--config``; ``model`` as ``--model-*``."""
 ALIASES = {"total_timesteps": ("--timesteps",)}
 OPTIONAL_VALUE = {"ray": {"nargs": "?", "const": "local", "metavar": "ADDRESS"}}
 """Flags whose value may be left out (``--ray`` alone: Ray on this machine)."""
-SIGNED_INTS = ("seed", "workers", "ray_max_restarts")
-"""Integer fields that may be zero or negative (checked where they are used); every other
-one must be > 0."""
 
 
 def positive_int(text: str) -> int:
@@ -78,7 +79,7 @@ def _add(group: argparse._ArgumentGroup, flags: list[str], dest: str, spec: data
         kwargs.update(type=positive_int, nargs=len(default), metavar="N")
     else:
         base = annotation.replace(" | None", "")
-        integer = int if dest in SIGNED_INTS else positive_int
+        integer = int if dest in SIGNED else positive_int
         kwargs["type"] = {"int": integer, "float": float}.get(base, str)
         kwargs["metavar"] = dest.split(".")[-1].upper()
     group.add_argument(*flags, **kwargs)
@@ -87,8 +88,6 @@ def _add(group: argparse._ArgumentGroup, flags: list[str], dest: str, spec: data
 def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
     """One ``--field-name`` per ``PPOArgs`` field, per ``DAggerArgs`` field that PPO has not,
     and ``--model-name`` per ``ModelConfig``."""
-    from jetbot_rt.train.args import TASK_DEFAULTS, DAggerArgs, ModelConfig, PPOArgs
-
     group = parser.add_argument_group("PPO options (also settable in a [train] table)")
     docs = field_docs(PPOArgs)
     for spec in dataclasses.fields(PPOArgs):
@@ -119,14 +118,14 @@ def overrides(namespace: argparse.Namespace, table: dict[str, Any] | None,
               algo: str = "ppo") -> dict[str, Any]:
     """The ``[train]`` table updated with the flags given on the command line; a flag of the
     other algorithm is an error."""
-    from jetbot_rt.errors import UsageError
-    from jetbot_rt.train.args import DAggerArgs, PPOArgs
-
     known = {"ppo": PPOArgs, "dagger": DAggerArgs}
     names = {f.name for f in dataclasses.fields(known[algo])} - set(SKIPPED)
     every = set().union(*({f.name for f in dataclasses.fields(c)} for c in known.values()))
     result: dict[str, Any] = {k: v for k, v in (table or {}).items() if k != "model"}
-    model: dict[str, Any] = dict((table or {}).get("model", {}))
+    model_table = (table or {}).get("model", {})
+    if not isinstance(model_table, dict):
+        raise UsageError("[train] model must be a table ([train.model])")
+    model: dict[str, Any] = dict(model_table)
     for key, value in vars(namespace).items():
         if key.startswith("model."):
             model[key[len("model."):]] = value

@@ -1,22 +1,23 @@
-"""The trainers' arguments: ``PPOArgs`` (with ``TASK_DEFAULTS``), ``DAggerArgs`` and the
-network's ``ModelConfig``, torch-free.
+"""The trainers' hyperparameters, torch-free: ``PPOArgs`` (with ``TASK_DEFAULTS``),
+``DAggerArgs`` and the network's ``ModelConfig``; ``OptionError`` names one out of range.
 
-``jetbot-train``'s parser is built from these dataclasses (``options.py``), so ``--help``, a
-refused flag and ``eval`` of an ONNX policy never import torch. ``ppo.py``, ``dagger.py`` and
-``model.py`` re-export them where they were first defined.
+``jetbot-train``'s flags are built from these dataclasses (``flags.py``), so ``--help``, a
+refused flag and ``eval`` of an ONNX policy never import torch.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
-from jetbot_rt.config import Config
+from jetbot_rt.config import Config, from_dict, read_toml
 from jetbot_rt.errors import UsageError
-from jetbot_rt.train.env import POLICY_IMAGE_SIZE, get_task
+from jetbot_rt.sim.tasks import get_task
+from jetbot_rt.train.env import POLICY_IMAGE_SIZE
 from jetbot_rt.train.expert import Expert
-from jetbot_rt.train.wrappers import Shaping
+from jetbot_rt.train.wrappers import REWARD_TRANSFORMS, Shaping
 
 LEGACY_IMAGE_SIZE, LEGACY_POOL = 224, 4
 """What a model config without ``image_size`` means: networks exported with a 224-pixel input
@@ -26,6 +27,9 @@ MAX_IMAGE_SIZE = 1024
 1024 already costs ~300x the default 56's pixels a step."""
 MAX_CHANNELS = 1024
 MAX_HIDDEN = 65_536
+SIGNED = ("seed", "workers", "ray_max_restarts", "snapshots")
+"""Integer options that may be zero or negative (each checked where it is defined); every
+other one must be > 0."""
 INIT_RANGES = {"init_log_std": (-20.0, 2.0), "init_mu": (-10.0, 10.0)}
 """Beyond these the first rollouts' actions are constant (std e^-20) or noise (std e^2 = 7
 times the action range); ``mu`` beyond 10 is clamped to 1 for many updates."""
@@ -86,8 +90,8 @@ class ModelConfig:
         known = {f.name for f in fields(cls)}
         unknown = sorted(str(key) for key in data if key not in known)
         if unknown:
-            raise OptionError("model", f"has unknown option(s) {', '.join(unknown)} "
-                                       f"(known: {', '.join(sorted(known))})")
+            raise UsageError(f"unknown model option(s) {', '.join(unknown)} "
+                             f"(known: {', '.join(sorted(known))})")
         if "image_size" not in data:
             data = {**data, "image_size": LEGACY_IMAGE_SIZE, "pool": data.get("pool", LEGACY_POOL)}
         if "channels" in data:
@@ -285,6 +289,24 @@ class PPOArgs:
         return Shaping(self.reward_transform, self.shaping_coef, self.aim_coef,
                        self.success_bonus, self.fail_penalty)
 
+    def validate(self) -> None:
+        """``OptionError`` for the first option out of range (before any env starts)."""
+        check_fields(self, SIGNED)
+        if self.ray is not None and self.workers is not None and \
+                not 0 < self.workers <= self.num_envs:
+            raise OptionError("workers", f"with ray must be 1 .. num_envs ({self.num_envs}), "
+                                         f"got {self.workers}")
+        if self.ray is None and self.workers not in (None, 0, self.num_envs):
+            raise OptionError("workers", f"must be 0 (envs in this process) or num_envs "
+                                         f"({self.num_envs}, one process each), got "
+                                         f"{self.workers}")
+        if self.ray_max_restarts < 0:
+            raise OptionError("ray_max_restarts", f"must be >= 0, got {self.ray_max_restarts}")
+        if self.reward_transform not in REWARD_TRANSFORMS:
+            raise OptionError("reward_transform", f"must be one of "
+                                                  f"{', '.join(REWARD_TRANSFORMS)}, got "
+                                                  f"{value_text(self.reward_transform)}")
+
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     # A 6x6 stride-4 first layer: a quarter of the network's CPU (docs/TRAINING.md, "Speed").
@@ -304,26 +326,57 @@ and a ``[train]`` table override them."""
 def ppo_args(task: str, overrides: dict[str, Any] | None = None) -> PPOArgs:
     """``PPOArgs`` for ``task``: dataclass defaults, then ``TASK_DEFAULTS[task]``, then
     ``overrides`` (a ``[train]`` table or command-line values; ``model`` a dict)."""
+    defaults = TASK_DEFAULTS.get(task, {})
+    return _build(PPOArgs, "training", task, defaults, overrides)
+
+
+def _build(cls: Any, what: str, task: str, defaults: dict[str, Any],
+           overrides: dict[str, Any] | None) -> Any:
+    """``cls`` for ``task``: ``defaults`` then ``overrides`` (each with an optional
+    ``model`` dict); unknown keys of either level are refused, then every value is checked."""
     get_task(task)
-    values: dict[str, Any] = {**TASK_DEFAULTS.get(task, {})}
-    model = dict(values.pop("model", {}))
+    values = {k: v for k, v in defaults.items() if k != "model"}
+    model = dict(defaults.get("model", {}))
     for key, value in (overrides or {}).items():
-        if key == "model":
+        if key != "model":
+            values[key] = value
+        elif isinstance(value, dict):
             model.update(value)
         else:
-            values[key] = value
-    names = {f.name for f in fields(PPOArgs)} - {"task", "config", "model"}
-    unknown = sorted(set(values) - names)
+            raise OptionError("model", f"must be a table of network options, got "
+                                       f"{value_text(value)}")
+    names = {f.name for f in fields(cls)} - {"task", "config", "model"}
+    unknown = sorted(str(key) for key in values if key not in names)
     if unknown:
-        raise UsageError(f"unknown training option(s) {', '.join(unknown)} "
+        raise UsageError(f"unknown {what} option(s) {', '.join(unknown)} "
                          f"(known: {', '.join(sorted(names))})")
-    model_names = {f.name for f in fields(ModelConfig)}
-    if set(model) - model_names:
-        raise UsageError(f"unknown model option(s) {', '.join(sorted(set(model) - model_names))}"
-                         f" (known: {', '.join(sorted(model_names))})")
-    if "channels" in model:
-        model["channels"] = tuple(model["channels"])
-    return replace(PPOArgs(), task=task, **values, model=replace(ModelConfig(), **model))
+    built = replace(cls(), task=task, **values,
+                    model=ModelConfig.from_dict({**ModelConfig().to_dict(), **model}))
+    built.validate()
+    return built
+
+
+def check_fields(options: Any, signed: tuple[str, ...] = ()) -> None:
+    """Each field of the dataclass ``options`` (but ``task``, ``config``, ``model``) of its
+    annotated type: an ``int`` not a bool and > 0 unless named in ``signed``, a ``float``
+    finite, ``X | None`` also None. ``OptionError`` names the first that is not."""
+    for spec in fields(options):
+        if spec.name in ("task", "config", "model"):
+            continue
+        value, kind = getattr(options, spec.name), str(spec.type)
+        if kind.endswith(" | None"):
+            if value is None:
+                continue
+            kind = kind[: -len(" | None")]
+        if kind == "int":
+            _check_int(spec.name, value)
+            if value <= 0 and spec.name not in signed:
+                raise OptionError(spec.name, f"must be > 0, got {value}")
+        elif kind == "float" and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                  or not math.isfinite(value)):
+            raise OptionError(spec.name, f"must be a finite number, got {value_text(value)}")
+        elif kind in ("bool", "str") and type(value).__name__ != kind:
+            raise OptionError(spec.name, f"must be a {kind}, got {value_text(value)}")
 
 
 @dataclass
@@ -395,18 +448,33 @@ class DAggerArgs:
     model: ModelConfig = field(default_factory=ModelConfig)
     """The network (``model.py``)."""
 
+    def validate(self) -> None:
+        """``OptionError`` for the first option out of range (before any env starts)."""
+        if self.task != "seek":
+            raise UsageError(f"DAgger has an expert for task seek only, not {self.task!r}")
+        check_fields(self, SIGNED)
+        if self.workers not in (None, 0, self.num_envs):
+            raise OptionError("workers", f"must be 0 or num_envs ({self.num_envs}), got "
+                                         f"{self.workers}")
+        if self.snapshots < 0:
+            raise OptionError("snapshots", f"must be >= 0, got {self.snapshots}")
+
 
 def dagger_args(task: str, overrides: dict[str, Any] | None = None) -> DAggerArgs:
     """``DAggerArgs`` for ``task`` with ``overrides`` (a ``[train]`` table, then flags)."""
-    get_task(task)
-    values = {k: v for k, v in (overrides or {}).items() if k != "model"}
-    names = {f.name for f in fields(DAggerArgs)} - {"task", "config", "model"}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise UsageError(f"unknown DAgger option(s) {', '.join(unknown)} "
-                         f"(known: {', '.join(sorted(names))})")
-    model = dict((overrides or {}).get("model", {}))
-    if "channels" in model:
-        model["channels"] = tuple(model["channels"])
-    return replace(DAggerArgs(), task=task, **{"out": f"runs/{task}", **values},
-                   model=replace(ModelConfig(), **model))
+    return _build(DAggerArgs, "DAgger", task, {"out": f"runs/{task}"}, overrides)
+
+
+def read_config_file(path: str | None) -> tuple[Config, dict[str, Any]]:
+    """The runtime config of a TOML file and its ``[train]`` table (the defaults and an empty
+    table without a file)."""
+    if path is None:
+        return Config(), {}
+    data = read_toml(path)
+    table = data.get("train", {})
+    if not isinstance(table, dict):
+        raise UsageError(f"config {path}: [train] must be a table")
+    try:
+        return from_dict(data), table
+    except UsageError as exc:
+        raise UsageError(f"config {path}: {exc}") from None

@@ -1,0 +1,183 @@
+"""PPO's rollouts: where a rollout's actions are computed, behind one interface.
+
+``RolloutSource.collect(model, update)`` steps every env ``num_steps`` times with the policy
+of ``model`` and returns a ``Rollout`` (the learner's tensors, on its device). Two sources:
+
+- ``WorkerRollouts``: each env worker process runs a copy of the policy through the whole
+  rollout and sends it back at once (``sampler.PolicySampler``); the default with worker
+  processes. A round trip to the learner every step serialised the machine (docs/TRAINING.md,
+  "Speed").
+- ``LearnerRollouts``: the learner computes each step's actions, batched over the envs, on
+  its device, and steps the vector env: in its own process (``workers`` 0), in worker
+  processes (``sample_in_workers`` off) or on a Ray cluster (``ray``: ``RayVectorEnv``).
+
+Both give the same PPO: the weights are the learner's at the start of the rollout, an episode
+that ends is reset in the same step (SAME_STEP), the reward is normalised by the running std
+of the discounted return and clipped in step order, and a time-limit truncation is not an end:
+its step's reward carries ``gamma`` times the value of the final observation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium.vector import VectorEnv
+
+from jetbot_rt.train.device import to_cpu
+from jetbot_rt.train.hyperparams import PPOArgs
+from jetbot_rt.train.model import ActorCritic, normal_log_prob
+from jetbot_rt.train.sampler import PolicySampler, normalize_segment, stack_segments
+from jetbot_rt.train.vec_env import EnvSpec, close_vector_env, make_vector_env
+from jetbot_rt.train.wrappers import normalize_rewards
+
+
+@dataclass
+class Rollout:
+    """``num_steps`` steps of ``num_envs`` envs, ``[num_steps, num_envs, ...]`` tensors."""
+
+    obs: torch.Tensor
+    """Preprocessed (``ActorCritic.preprocess``): the frame each action was chosen on."""
+    actions: torch.Tensor
+    logprobs: torch.Tensor
+    rewards: torch.Tensor
+    """Normalised and clipped, a truncated step's bootstrap added."""
+    dones: torch.Tensor
+    """Whether the episode ended *before* this step (its observation is a reset's)."""
+    values: torch.Tensor
+    next_obs: torch.Tensor
+    """``[num_envs, ...]``: the next rollout's first observation, preprocessed."""
+    next_done: torch.Tensor
+    episodes: list[tuple[float, float, float]]
+    """(return, final distance, success) of each episode that ended, in step, env order."""
+
+    @property
+    def steps(self) -> int:
+        return self.rewards.numel()
+
+
+class RolloutSource:
+    """A vector env, its reward normaliser and the rollout buffers (reused every update)."""
+
+    def __init__(self, envs: VectorEnv, normalizer: Any, options: PPOArgs,
+                 device: torch.device, obs_shape: tuple[int, ...]) -> None:
+        self.envs, self.normalizer, self.options, self.device = envs, normalizer, options, device
+        shape = (options.num_steps, options.num_envs)
+        self.obs = torch.zeros((*shape, *obs_shape), device=device)
+        self.actions = torch.zeros((*shape, 2), device=device)
+        self.logprobs, self.rewards, self.dones, self.values = (
+            torch.zeros(shape, device=device) for _ in range(4))
+        self.next_obs = torch.zeros((options.num_envs, *obs_shape), device=device)
+        self.next_done = torch.zeros(options.num_envs, device=device)
+
+    @property
+    def restarts(self) -> int:
+        """Env workers restarted so far (Ray's); 0 elsewhere."""
+        return getattr(self.envs.unwrapped, "restarts", 0)
+
+    def reset(self, model: ActorCritic, seeds: list[int]) -> None:
+        frames, _ = self.envs.reset(seed=seeds)
+        self.next_obs = model.preprocess(torch.from_numpy(frames).to(self.device))
+        self.next_done = torch.zeros(self.options.num_envs, device=self.device)
+
+    def collect(self, model: ActorCritic, update: int) -> Rollout:
+        raise NotImplementedError
+
+    def close(self, interrupted: bool) -> None:
+        close_vector_env(self.envs, interrupted)
+
+    def _rollout(self, episodes: list[tuple[float, float, float]]) -> Rollout:
+        return Rollout(self.obs, self.actions, self.logprobs, self.rewards, self.dones,
+                       self.values, self.next_obs, self.next_done, episodes)
+
+
+class LearnerRollouts(RolloutSource):
+    def collect(self, model: ActorCritic, update: int) -> Rollout:
+        episodes: list[tuple[float, float, float]] = []
+        for step in range(self.options.num_steps):
+            self.obs[step] = self.next_obs
+            self.dones[step] = self.next_done
+            with torch.no_grad():
+                mu, log_std, value = model.heads(self.next_obs)
+                std = log_std.exp()
+                action = torch.normal(mu, std)  # what Normal(mu, std).sample() does
+                self.logprobs[step] = normal_log_prob(action, mu, std).sum(-1)
+            self.values[step] = value.squeeze(-1)
+            self.actions[step] = action
+            frames, reward, terminated, truncated, infos = self.envs.step(action.cpu().numpy())
+            done = np.logical_or(terminated, truncated)
+            self.rewards[step] = self._bootstrapped(model, reward, terminated, truncated, infos)
+            for i in np.nonzero(done)[0]:
+                final_info = infos["final_info"]
+                episodes.append((float(final_info["episode"]["r"][i]),
+                                 float(final_info["distance"][i]),
+                                 float(final_info["is_success"][i])))
+            self.next_obs = model.preprocess(torch.from_numpy(frames).to(self.device))
+            self.next_done = torch.as_tensor(done, dtype=torch.float32, device=self.device)
+        return self._rollout(episodes)
+
+    def _bootstrapped(self, model: ActorCritic, reward: np.ndarray, terminated: np.ndarray,
+                      truncated: np.ndarray, infos: dict[str, Any]) -> torch.Tensor:
+        """The step's (normalised) reward plus ``gamma`` times the value of the final
+        observation where an episode was truncated by the time limit."""
+        reward = np.asarray(reward, dtype=np.float64).copy()
+        idx = np.nonzero(truncated & ~terminated)[0]
+        if idx.size and "final_obs" in infos:
+            final = torch.from_numpy(np.stack(infos["final_obs"][idx])).to(self.device)
+            with torch.no_grad():
+                final_value = model.value(model.preprocess(final))
+            reward[idx] += self.options.gamma * final_value.cpu().numpy()
+        return torch.as_tensor(reward, dtype=torch.float32, device=self.device)
+
+
+class WorkerRollouts(RolloutSource):
+    def collect(self, model: ActorCritic, update: int) -> Rollout:
+        options, device = self.options, self.device
+        # numpy, not tensors: torch pickles a tensor as a shared-memory file descriptor
+        # handed over by a resource_sharer thread, which printed a traceback when a worker
+        # died on Ctrl-C mid-handover.
+        weights = {name: w.numpy() for name, w in to_cpu(model.state_dict()).items()}
+        segment = stack_segments(self.envs.unwrapped.call(
+            "collect", weights, options.num_steps, (options.seed, update)))
+        frames = torch.from_numpy(segment["obs"]).to(device)
+        self.obs[:] = model.preprocess(frames.flatten(0, 1)).reshape(self.obs.shape)
+        for buf, key in ((self.actions, "actions"), (self.logprobs, "logprobs"),
+                         (self.values, "values")):
+            buf[:] = torch.from_numpy(segment[key]).to(device)
+        done = segment["terminated"] | segment["truncated"]
+        self.dones[0] = self.next_done
+        self.dones[1:] = torch.from_numpy(done[:-1]).to(device)
+        reward = normalize_segment(self.normalizer, options.reward_clip, segment["rewards"],
+                                   segment["terminated"], segment["truncated"])
+        reward += options.gamma * segment["final_values"]  # 0 where not truncated
+        self.rewards[:] = torch.as_tensor(reward, dtype=torch.float32, device=device)
+        episodes = [(episode_return, distance, success)
+                    for _, _, episode_return, distance, success in segment["episodes"]]
+        self.next_obs = model.preprocess(torch.from_numpy(segment["next_obs"]).to(device))
+        self.next_done = torch.as_tensor(done[-1], dtype=torch.float32, device=device)
+        return self._rollout(episodes)
+
+
+def samples_in_workers(options: PPOArgs) -> bool:
+    """Whether the env workers run the policy through whole rollouts (``WorkerRollouts``)."""
+    return options.sample_in_workers and options.ray is None and options.workers != 0
+
+
+def make_rollout_source(options: PPOArgs, model: ActorCritic,
+                        device: torch.device) -> RolloutSource:
+    """The source ``options`` ask for, with its vector env started."""
+    sampling = samples_in_workers(options)
+    spec = EnvSpec(options.task, options.config, options.shaping, model.config.image_size,
+                   sampler=PolicySampler if sampling else None,
+                   model=model.config if sampling else None)
+    envs, normalizer = normalize_rewards(
+        make_vector_env(spec, options.num_envs, options.workers, ray=options.ray,
+                        ray_max_restarts=options.ray_max_restarts),
+        options.gamma, options.reward_clip)
+    with torch.no_grad():
+        frame = torch.zeros((1, *envs.single_observation_space.shape))
+        obs_shape = tuple(model.preprocess(frame).shape[1:])
+    source = WorkerRollouts if sampling else LearnerRollouts
+    return source(envs, normalizer, options, device, obs_shape)
