@@ -3,20 +3,30 @@
 signal(7), every signal whose default action ends or stops the process, decided one by one:
 
 - **Caught, safe stop, orderly end** (exit 0, ``<NAME> received``): SIGINT, SIGTERM, SIGHUP,
-  SIGQUIT, SIGUSR1, SIGUSR2, SIGALRM, SIGVTALRM, SIGPROF, SIGIO, SIGPWR, SIGSTKFLT, SIGXCPU
+  SIGQUIT, SIGUSR1, SIGALRM, SIGVTALRM, SIGPROF, SIGIO, SIGPWR, SIGSTKFLT, SIGXCPU
   (the CPU-time soft limit: the hard limit's SIGKILL follows), SIGTRAP and SIGSYS sent by
   ``kill``, and every real-time signal SIGRTMIN..SIGRTMAX.
+- **Caught, every thread's stack, safe stop as a fault** (exit 3): SIGUSR2, the unit's
+  ``WatchdogSignal=`` (``WATCHDOG``). The stacks are read in Python, in the main thread, while
+  it holds the GIL: no other thread can run Python meanwhile, so every frame read is one that
+  stands still. (faulthandler's dump from a C signal handler reads the other threads' frames
+  while they run: after systemd's SIGCONT to a stopped service it crashed with SIGSEGV in 3 of
+  6 trials.) A process so wedged that this handler never runs (the GIL held for ever by a
+  native call) gets the unit's ``FinalKillSignal=SIGABRT`` ``TimeoutAbortSec=`` later: then
+  no thread can run Python, and faulthandler's dump of every thread is safe.
 - **Caught, safe stop, then suspended** (SIGTSTP: Ctrl-Z; SIGTTIN, SIGTTOU: a background job
   touching the terminal): the motors go to zero first, then the process stops itself with
   SIGSTOP as the shell expects. On SIGCONT (``fg``) **the run ends** (exit 0): a robot that
   starts driving again by itself when someone types ``fg`` is a surprise; start it again.
 - **Left to Python**: SIGPIPE and SIGXFSZ, which CPython ignores so that the write fails
   with an ``OSError`` instead (telemetry counts it as lost records and keeps driving).
-- **Not caught, by decision**: SIGABRT is systemd's ``WatchdogSignal`` for a process that is
-  wedged (Python no longer runs, so a Python handler would keep it alive); faulthandler dumps
-  every thread's stack and the process dies, then ``ExecStopPost`` turns the board off.
-  SIGSEGV, SIGBUS, SIGFPE, SIGILL are memory or CPU faults: the process state cannot be
-  trusted; faulthandler dumps the stacks, the process dies, ``ExecStopPost`` stops the board.
+- **Not caught, by decision**: SIGABRT (the unit's ``FinalKillSignal``; a native ``abort()``)
+  means Python may no longer run, so a Python handler would keep the process alive;
+  faulthandler dumps every thread's stack and the process dies, then ``ExecStopPost`` turns
+  the board off. SIGSEGV, SIGBUS, SIGFPE, SIGILL are memory or CPU faults: the process state
+  cannot be trusted; faulthandler dumps the stacks, the process dies, ``ExecStopPost`` stops
+  the board. (After the watchdog signal's own dump, a later SIGABRT prints only the stack of
+  the thread it lands on: the other threads may be running again.)
 - **Cannot be caught**: SIGKILL (``ExecStopPost``), SIGSTOP (the motors keep their duty while
   the process is stopped; systemd's watchdog ends a stopped service, a manual run has nothing).
 """
@@ -25,12 +35,14 @@ from __future__ import annotations
 
 import _thread
 import contextlib
+import faulthandler
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, TextIO
 
 _TERMINATING_NAMES = (
     "SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGVTALRM",
@@ -58,6 +70,12 @@ TERMINATING: list[int] = _present(_TERMINATING_NAMES) + _realtime()
 SUSPENDING: list[int] = _present(_SUSPENDING_NAMES)
 """Signals whose default action stops the process: safe stop, then suspend; the run ends."""
 HANDLED: list[int] = TERMINATING + SUSPENDING
+WATCHDOG: int = int(signal.SIGUSR2)
+"""The unit's ``WatchdogSignal=``: every thread's stack, then the safe stop as a fault."""
+FAULTING: list[int] = [WATCHDOG]
+"""Handled signals whose stop is a fault (exit 3), not an orderly end."""
+MAX_FRAMES = 100
+"""Frames printed per thread, innermost first (faulthandler prints as many)."""
 
 
 def name(signum: int) -> str:
@@ -69,12 +87,74 @@ def name(signum: int) -> str:
 
 
 def install(handler: Callable[[int, Any], None]) -> None:
-    """``handler`` for every signal in ``HANDLED`` (main thread only)."""
+    """``handler`` for every signal in ``HANDLED`` (main thread only); once
+    ``enable_stack_dumps`` ran, the watchdog signal's prints every thread's stack first."""
     for signum in HANDLED:
+        chosen = handler
+        if signum == WATCHDOG and _stack_file is not None and handler is not raise_interrupted:
+            chosen = _stacks_first(handler)
         with contextlib.suppress(OSError, ValueError, RuntimeError):  # not settable here
-            signal.signal(signum, handler)
+            signal.signal(signum, chosen)
     if handler is raise_interrupted and not isinstance(sys.unraisablehook, _SendAgain):
         sys.unraisablehook = _SendAgain(sys.unraisablehook)
+
+
+_stack_file: TextIO | None = None
+
+
+def enable_stack_dumps(file: TextIO | None = None) -> None:
+    """For a command that drives: SIGABRT, SIGSEGV, SIGBUS, SIGFPE and SIGILL print every
+    thread's stack (faulthandler, from C: Python may be wedged) before the process dies, and
+    the handler ``install`` gives ``WATCHDOG`` prints them from Python first. ``file``: the
+    interpreter's own stderr by default (the journal under systemd)."""
+    global _stack_file
+    _stack_file = file if file is not None else sys.__stderr__
+    with contextlib.suppress(ValueError, OSError, AttributeError):  # stderr without a file
+        faulthandler.enable(file=_stack_file, all_threads=True)
+
+
+def _stacks_first(handler: Callable[[int, Any], None]) -> Callable[[int, Any], None]:
+    def stacks_then_stop(signum: int, frame: Any) -> None:
+        # Past this point the threads run again (the stop below, a SIGCONT): a later SIGABRT
+        # (the unit's FinalKillSignal) must read no frame but its own thread's.
+        with contextlib.suppress(ValueError, OSError, AttributeError):
+            faulthandler.enable(file=_stack_file, all_threads=False)
+        text = (f"jetbot-rt: {name(signum)} (systemd's WatchdogSignal: no WATCHDOG=1 within "
+                f"WatchdogSec): the stack of every thread, most recent call first\n"
+                + thread_stacks(frame))
+        handler(signum, frame)  # the stop is not held up by the printing
+        with contextlib.suppress(Exception):  # a closed or reentered stream: stacks lost
+            print(text, end="", file=sys.stderr, flush=True)
+
+    return stacks_then_stop
+
+
+def thread_stacks(interrupted: Any = None) -> str:
+    """Every Python thread's stack, innermost frame first, in faulthandler's layout plus the
+    thread's name. Call it holding the GIL (any Python code does): no other thread runs
+    Python meanwhile, so no frame changes while it is read. ``interrupted``: the frame a
+    signal handler interrupted, shown for the calling thread instead of the handler's own.
+
+    Takes no lock (``threading.enumerate()`` would take one that the interrupted code may
+    hold) and does no I/O."""
+    names = {ident: thread.name for ident, thread in dict(threading._active).items()}  # type: ignore[attr-defined]
+    me = threading.get_ident()
+    lines = []
+    for ident, frame in sys._current_frames().items():
+        if ident == me and interrupted is not None:
+            frame = interrupted
+        current = " (current)" if ident == me else ""
+        lines.append(f"Thread {names.get(ident, '?')} 0x{ident:016x}{current}:")
+        for _ in range(MAX_FRAMES):
+            if frame is None:
+                break
+            code = frame.f_code
+            lines.append(f'  File "{code.co_filename}", line {frame.f_lineno} in {code.co_name}')
+            frame = frame.f_back
+        if frame is not None:
+            lines.append("  ...")
+        lines.append("")
+    return "\n".join(lines)
 
 
 def suspend_self() -> None:

@@ -16,6 +16,7 @@ import pytest
 from jetbot_rt.cli import main
 from jetbot_rt.commands import install_service as service
 from jetbot_rt.config import Config, load_config
+from jetbot_rt.errors import UsageError
 
 REPO = Path(__file__).resolve().parents[1]
 UNIT = PurePosixPath("etc/systemd/system/jetbot-rt.service")
@@ -201,3 +202,164 @@ def test_default_config_mentions_every_key():
     for section in dataclasses.fields(Config):
         declared = {f.name for f in dataclasses.fields(getattr(Config(), section.name))}
         assert declared <= keys_by_section.get(section.name, set()), section.name
+
+
+# ---- hostile values and hostile trees (issue 25) -------------------------------------------
+
+
+def installed_files(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*") if p.is_file() or p.is_symlink())
+
+
+@pytest.mark.parametrize(("option", "value"), [
+    ("--config", "/etc/jetbot-rt/x.toml\nExecStartPre=/bin/touch /pwned"),
+    ("--config", "/etc/jetbot-rt/x.toml\rExecStartPre=/bin/true"),
+    ("--config", "/etc/jetbot-rt/\x1b[31mred.toml"),
+    ("--config", "/etc/jetbot-rt/x\u2028y.toml"),
+    ("--config", "/etc/jetbot-rt/\udcff.toml"),  # a byte that is not UTF-8, as argv gives it
+    ("--config", "/etc/jetbot-rt/../../../outside/x.toml"),
+    ("--config", "/etc/jetbot-rt/"),
+    ("--user", "root\nExecStartPre=/bin/true"),
+    ("--user", "%n"),
+    ("--user", "ro ot"),
+])
+def test_a_value_systemd_would_read_otherwise_is_refused_in_one_line(
+        tmp_path: Path, capsys, option: str, value: str) -> None:
+    root = tmp_path / "root"
+    root.mkdir()
+    args = {"--user": "root", "--config": "/etc/jetbot-rt/config.toml", option: value}
+    assert main(["install-service", "--root", str(root), *(x for kv in args.items() for x in kv)]
+                ) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("jetbot-rt install-service: error:"), err
+    assert installed_files(tmp_path) == [], "nothing written, inside --root or out"
+
+
+def test_a_newline_in_the_executables_own_path_writes_no_unit(tmp_path: Path) -> None:
+    """The executable's path is a value like any other: a venv in a directory whose name holds
+    a newline would otherwise inject unit lines (issue 22's escaping)."""
+    odd = tmp_path / "venv\nExecStartPre=/bin/touch pwned" / "bin"
+    odd.mkdir(parents=True)
+    script = odd / "jetbot-rt"
+    shutil.copy2(Path(sysconfig.get_path("scripts")) / "jetbot-rt", script)
+    root = tmp_path / "root"
+    root.mkdir()
+    result = subprocess.run([str(script), "install-service", "--root", str(root), "--user",
+                             "root"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stderr.count("\n") == 1 and "control character" in result.stderr
+    assert list(root.iterdir()) == []
+
+
+@pytest.mark.parametrize("link", ["etc", "etc/systemd/system", "etc/jetbot-rt",
+                                  "etc/jetbot-rt/config.toml", "etc/passwd"])
+def test_a_symbolic_link_in_the_staged_tree_cannot_lead_out_of_root(tmp_path: Path, capsys,
+                                                                   link: str) -> None:
+    """An image's absolute link means the image's /, which here is the host's: refused, one
+    line, and nothing is read or written where it points."""
+    outside = tmp_path / "host"
+    outside.mkdir()
+    (outside / "passwd").write_text("root:x:0:0::/root:/bin/sh\n")
+    root = tmp_path / "root"
+    target = root / link
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.symlink_to(outside / "passwd" if link.endswith(("passwd", ".toml")) else outside)
+    before = installed_files(outside)
+    assert install(root) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "outside --root" in err, err
+    assert installed_files(outside) == before
+    assert (outside / "passwd").read_text() == "root:x:0:0::/root:/bin/sh\n"
+
+
+def test_a_link_inside_root_at_the_unit_is_replaced_not_followed(tmp_path: Path) -> None:
+    root = tmp_path / "root"
+    unit = root / UNIT
+    unit.parent.mkdir(parents=True)
+    decoy = root / "etc" / "decoy"
+    decoy.write_text("decoy\n")
+    unit.symlink_to(decoy)
+    assert install(root, "--force") == 0
+    assert not unit.is_symlink() and "Type=notify" in unit.read_text()
+    assert decoy.read_text() == "decoy\n"
+
+
+ODD_NAMES = ["my venv", "100%", "$HOME", "${HOME}", "semi;colon", "été", "a  two  spaces",
+             "%n%%", "{}*?[]", "#hash", "tab-less;and=equals"]
+REFUSED_IN_PROGRAMS = ["back\\slash", 'dou"ble', "sin'gle", "end\\"]
+
+
+@needs_systemd_analyze
+def test_every_odd_character_in_a_path_reaches_systemd_unchanged(tmp_path: Path) -> None:
+    """Each odd directory name holds a real copy of the executable; systemd-analyze verify
+    fails on an ExecStart= whose path does not exist, so it passes only if systemd reads back
+    exactly the path that was escaped."""
+    installed = Path(sysconfig.get_path("scripts")) / "jetbot-rt"
+    for index, name in enumerate(ODD_NAMES):
+        directory = tmp_path / f"{index}" / name
+        directory.mkdir(parents=True)
+        executable = directory / "jetbot-rt"
+        shutil.copy2(installed, executable)
+        unit = tmp_path / f"odd{index}.service"
+        unit.write_text(service.render_unit(executable, "root",
+                                            PurePosixPath(f"/etc/{name}/c.toml")))
+        result = systemd_verify(unit)
+        assert result.returncode == 0 and result.stderr == "", (name, result.stderr)
+        broken = unit.read_text().replace(service.systemd_word(str(executable), program=True),
+                                          f'"{executable}x"', 1)
+        unit.write_text(broken)
+        assert systemd_verify(unit).returncode != 0, "verify would not notice a wrong path"
+
+
+@pytest.mark.parametrize("name", REFUSED_IN_PROGRAMS)
+def test_a_program_path_systemd_refuses_to_run_is_refused_in_one_line(tmp_path: Path,
+                                                                      name: str) -> None:
+    """systemd will not run a program whose path holds a quote or a backslash, however it is
+    escaped ("Executable name contains special characters"): say so instead of writing a unit
+    that cannot start. In an argument (the config's path) they are escaped."""
+    with pytest.raises(UsageError, match="quote or a backslash") as refused:
+        service.render_unit(tmp_path / name / "jetbot-rt", "root",
+                            PurePosixPath("/etc/jetbot-rt/config.toml"))
+    assert "\n" not in str(refused.value)
+    text = service.render_unit(Path("/opt/jetbot-rt/bin/jetbot-rt"), "root",
+                               PurePosixPath(f"/etc/{name}/c.toml"))
+    [exec_start] = unit_values(text, "ExecStart")
+    word = exec_start.split(" --config ", 1)[1]
+    assert word.startswith('"') and word.endswith('"'), word
+    assert re.sub(r"\\(.)", r"\1", word[1:-1]) == f"/etc/{name}/c.toml"
+
+
+def test_placeholders_are_filled_in_the_settings_and_nowhere_else(tmp_path: Path) -> None:
+    assert install(tmp_path) == 0
+    text = (tmp_path / UNIT).read_text()
+    comments = "".join(ln for ln in text.splitlines(keepends=True) if ln.startswith("#"))
+    settings = "".join(ln for ln in text.splitlines(keepends=True) if not ln.startswith("#"))
+    assert "fills in @EXECUTABLE@, @USER@, @CONFIG@ and\n# @PROTECT_HOME@" in comments
+    assert comments == "".join(ln for ln in service.unit_template().splitlines(keepends=True)
+                               if ln.startswith("#")), "comments as the template has them"
+    assert "@" not in settings
+
+
+# ---- what the unit decides (issue 25) ------------------------------------------------------
+
+
+def test_an_orderly_end_or_a_fault_is_never_restarted_whatever_exec_stop_post_says():
+    """systemd (service_shall_restart, src/core/service.c) checks RestartPreventExitStatus=
+    first, against the main process's exit code only, and then Restart=. An ExecStopPost that
+    fails (exit 1: the board not confirmed off), times out or is killed turns the unit's result
+    into exit-code, timeout or signal; the main process's 0, 2 or 3 still prevents a restart.
+    ExecStopPost keeps no '-': its failure shows as a failed unit."""
+    text = service.unit_template()
+    assert unit_values(text, "Restart") == ["on-abnormal"]
+    assert set(unit_values(text, "RestartPreventExitStatus")[0].split()) == {"0", "2", "3"}
+    [stop_post] = unit_values(text, "ExecStopPost")
+    assert stop_post.startswith("@EXECUTABLE@ stop"), "no '-' or other prefix"
+    assert unit_values(text, "StartLimitBurst") == ["3"]
+
+
+def test_the_runtime_directory_is_private_and_the_service_runs_ahead_of_the_load():
+    text = service.unit_template()
+    assert unit_values(text, "RuntimeDirectoryMode") == ["0700"]
+    [nice] = unit_values(text, "Nice")
+    assert -20 <= int(nice) < 0
+    assert not unit_values(text, "CPUSchedulingPolicy"), "decided: no real-time policy"

@@ -1,22 +1,28 @@
 """``jetbot-rt install-service``: write the systemd unit and, if absent, a default config.
 
 Everything is checked before anything is written, so an error (exit 2, one line) leaves the
-target tree as it was. ``--root`` installs into a staging tree (an SD-card image, a test).
+target tree as it was. ``--root`` installs into a staging tree (an SD-card image, a test):
+every path it reads or writes stays inside that tree (no ``..``, no symbolic link that leads
+out). Every value that goes into the unit is refused when systemd could read it as something
+else (a control character, text that is not UTF-8, a user name systemd would not take) and
+escaped as systemd.syntax(7) says otherwise (quotes, ``%%``, ``$$``).
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import grp
 import os
 import pkgutil
 import pwd
+import re
 import shutil
 import sys
 import sysconfig
+import unicodedata
 from pathlib import Path, PurePosixPath
 
+from jetbot_rt import safe_file
 from jetbot_rt.errors import UsageError
 
 UNIT_NAME = "jetbot-rt.service"
@@ -27,6 +33,16 @@ CREATE_USER_HINT = "sudo useradd --system --groups i2c,video jetbot"
 SUPPLEMENTARY_GROUPS = ("i2c", "video")
 # ProtectHome=yes hides these; an installation living there needs ProtectHome=read-only.
 HOME_DIRS = (PurePosixPath("/home"), PurePosixPath("/root"), PurePosixPath("/run/user"))
+PLACEHOLDERS = ("@EXECUTABLE@", "@USER@", "@CONFIG@", "@PROTECT_HOME@")
+# A name useradd and systemd both take (systemd's own rule is looser, useradd's stricter on
+# the first character); anything else is refused rather than escaped: User= expands
+# specifiers and takes no quotes.
+USER_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,31}")
+# Characters systemd would read as something else inside a unit file line: every C0/C1
+# control (a newline starts a new line, so a new setting), and the Unicode line separators.
+REFUSED_CATEGORIES = ("Cc", "Zl", "Zp")
+FILE_LIMIT = 1 << 20
+"""The largest unit or passwd file read back (both are a few KiB)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,12 +67,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    root = Path(args.root)
+    root = Path(safe_file.text_path(args.root, "--root"))
     if not root.is_dir():
         raise UsageError(f"--root {args.root}: not a directory")
-    config = PurePosixPath(args.config)
-    if not config.is_absolute():
-        raise UsageError(f"--config {args.config}: must be an absolute path on the target")
+    config = target_path(args.config)
     check_user(args.user, root)
     executable = find_executable()
 
@@ -68,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
 
         load_config(config_path)  # an existing config is kept: it must be one the service reads
     unit_action = "wrote"
-    if unit_path.exists():
-        if read_text(unit_path) == unit_text:
+    if unit_path.exists() or unit_path.is_symlink():
+        if read_text(unit_path, "the unit") == unit_text:
             unit_action = "unchanged"
         elif not args.force:
             raise UsageError(f"{unit_path} exists and differs; pass --force to replace it")
@@ -91,12 +105,29 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def target_path(value: str) -> PurePosixPath:
+    """``--config`` as a path on the target: absolute, naming a file, no ``..`` (which would
+    lead out of ``--root`` here and somewhere unexpected there)."""
+    text = unit_value("--config", value)
+    config = PurePosixPath(text)
+    if not config.is_absolute():
+        raise UsageError(f"--config {value}: must be an absolute path on the target")
+    if ".." in config.parts:
+        raise UsageError(f"--config {value}: must not contain '..'")
+    if config.name in ("", ".") or text.endswith("/"):
+        raise UsageError(f"--config {value}: must name a file")
+    return config
+
+
 def check_user(name: str, root: Path) -> None:
     """The user must exist on the target: the host's user database, or the staged
     ``etc/passwd`` when installing into another tree that has one."""
-    passwd = root / "etc" / "passwd"
+    if USER_NAME.fullmatch(name) is None:
+        raise UsageError(f"--user {name!r}: not a user name a systemd unit can take "
+                         "(letters, digits, '_', '.', '-'; at most 32)")
+    passwd = staged(root, PurePosixPath("/etc/passwd"))
     if root.resolve() != Path("/") and passwd.is_file():
-        names = {line.split(":", 1)[0] for line in read_text(passwd).splitlines()}
+        names = {line.split(":", 1)[0] for line in read_text(passwd, "passwd").splitlines()}
         exists = name in names
     else:
         try:
@@ -158,21 +189,60 @@ def shebang_interpreter(executable: Path) -> PurePosixPath | None:
 
 
 def render_unit(executable: Path, user: str, config: PurePosixPath) -> str:
-    text = unit_template()
+    """The unit: the template with its placeholders filled in its settings, never in its
+    comments (which name the placeholders to say what the template is)."""
+    if USER_NAME.fullmatch(user) is None:
+        raise UsageError(f"--user {user!r}: not a user name a systemd unit can take")
     values = {
-        "@EXECUTABLE@": systemd_word(str(executable)),
+        "@EXECUTABLE@": systemd_word(unit_value("the jetbot-rt executable's path",
+                                                os.fsdecode(executable)), program=True),
         "@USER@": user,
-        "@CONFIG@": systemd_word(str(config)),
+        "@CONFIG@": systemd_word(unit_value("--config", str(config))),
         "@PROTECT_HOME@": protect_home(executable, config),
     }
-    for placeholder, value in values.items():
-        text = text.replace(placeholder, value)
+    lines = []
+    for line in unit_template().splitlines(keepends=True):
+        if not line.lstrip().startswith(("#", ";")):
+            for placeholder, value in values.items():
+                line = line.replace(placeholder, value)
+        lines.append(line)
+    text = "".join(lines)
+    settings = [ln for ln in text.splitlines() if not ln.lstrip().startswith(("#", ";"))]
+    left = [p for p in PLACEHOLDERS if any(p in ln for ln in settings)]
+    assert not left, f"the unit template has a placeholder this code does not fill: {left}"
     return text
 
 
-def systemd_word(word: str) -> str:
-    """One argument of an Exec*= line: ``%`` and ``$`` escaped, quoted if it has blanks."""
-    word = word.replace("%", "%%").replace("$", "$$")
+def unit_value(what: str, value: str) -> str:
+    """``value`` if systemd reads it back as the same text, else ``UsageError`` (one line):
+    a control character (a newline would start a new setting: issue 22's injection), a line
+    separator, or bytes that are not UTF-8 (a unit file is UTF-8)."""
+    for char in value:
+        category = unicodedata.category(char)
+        if category == "Cs":
+            raise UsageError(f"{what} {safe_file.shown(value)}: not valid UTF-8 text, which a "
+                             "systemd unit cannot hold")
+        if category in REFUSED_CATEGORIES:
+            raise UsageError(f"{what} {value!r}: a control character (U+{ord(char):04X}) "
+                             "cannot go into a systemd unit")
+    return value
+
+
+def systemd_word(word: str, *, program: bool = False) -> str:
+    """One word of an Exec*= line (systemd.syntax(7), systemd.service(5) "Command lines"):
+    specifiers (``%``) escaped by doubling, and variables (``$``) too except in the
+    ``program`` (the first word, which systemd never substitutes: ``$$`` would stay two);
+    quoted, with ``\\`` and ``"`` escaped, when it holds a blank, a quote or a backslash
+    (systemd unescapes C-style sequences in every word)."""
+    unit_value("a command-line word", word)
+    if program and any(c in word for c in "\"'\\"):
+        # systemd refuses such a program outright ("Executable name contains special
+        # characters", string_is_safe()): no escaping makes it runnable.
+        raise UsageError(f"{word}: systemd does not run a program whose path holds a quote or "
+                         "a backslash; install jetbot_rt in a directory without one")
+    word = word.replace("%", "%%")
+    if not program:
+        word = word.replace("$", "$$")
     if any(c in word for c in " \t\"'\\"):
         word = '"' + word.replace("\\", "\\\\").replace('"', '\\"') + '"'
     return word
@@ -194,27 +264,39 @@ def default_config_text() -> str:
 
 
 def staged(root: Path, target: PurePosixPath) -> Path:
-    return root / target.relative_to("/")
+    """``target`` (absolute, on the target system) inside ``root``, or ``UsageError`` when the
+    way there leaves ``root``: a ``..``, or a symbolic link in the staged tree (an image's
+    absolute link means its own ``/``, which here is the host's)."""
+    if ".." in target.parts:
+        raise UsageError(f"{target}: must not contain '..'")
+    path = root / target.relative_to("/")
+    inside = root.resolve()
+    existing = path
+    while not os.path.lexists(existing) and existing != root:
+        existing = existing.parent  # what does not exist yet is created under it
+    resolved = existing.resolve()
+    if resolved != inside and inside not in resolved.parents:
+        raise UsageError(f"{path} leads outside --root {root} (to {resolved}, through a "
+                         "symbolic link); nothing was written")
+    return path
 
 
-def read_text(path: Path) -> str:
-    try:
-        return path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise UsageError(f"cannot read {path}: {exc.strerror or exc}") from None
+def read_text(path: Path, what: str) -> str:
+    """A staged file we did not write (a unit, a passwd): bounded, never blocking."""
+    return safe_file.read_text(path, what, FILE_LIMIT)
 
 
 def write_file(path: Path, text: str) -> None:
-    """Write via a temporary file and rename, mode 0644: systemd and the service user read it."""
-    temporary = path.with_name(f".{path.name}.tmp")
+    """Write via a new file renamed over ``path`` (a link planted there is replaced, not
+    followed), mode 0644: systemd and the service user read it."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        temporary.write_text(text, encoding="utf-8")
-        temporary.chmod(0o644)
-        os.replace(temporary, path)
+        with safe_file.replaced_file(path.parent, path.name, 0o644) as fd:
+            os.fchmod(fd, 0o644)  # whatever the umask
+            data = text.encode("utf-8")
+            while data:
+                data = data[os.write(fd, data):]
     except OSError as exc:
-        with contextlib.suppress(OSError):
-            temporary.unlink(missing_ok=True)
         hint = " (run it with sudo)" if isinstance(exc, PermissionError) else ""
         raise UsageError(f"cannot write {path}: {exc.strerror or exc}{hint}") from None
 

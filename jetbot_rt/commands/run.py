@@ -11,8 +11,6 @@ driver). The watchdog has its own thread. Every way out writes zero to the drive
 from __future__ import annotations
 
 import argparse
-import contextlib
-import faulthandler
 import os
 import sys
 import threading
@@ -440,7 +438,7 @@ class Runtime:
         signals.install(handler)
 
     def _on_signal(self, signum: int) -> None:
-        self.latch.trip(f"{signals.name(signum)} received", fault=False)
+        self.latch.trip(f"{signals.name(signum)} received", fault=signum in signals.FAULTING)
         if signum in signals.SUSPENDING:
             # Ctrl-Z: the motors are zero before the process stops (another trip may still be
             # running its callbacks: stop again, it is bounded); on SIGCONT the run ends.
@@ -469,7 +467,7 @@ class Runtime:
 
 
 def run(args: argparse.Namespace) -> int:
-    # A hang that systemd's watchdog ends with SIGABRT leaves every thread's stack in the journal.
-    with contextlib.suppress(ValueError, OSError, AttributeError):  # stderr without a file
-        faulthandler.enable(file=sys.__stderr__)
+    # A run that systemd's watchdog ends leaves every thread's stack in the journal
+    # (jetbot_rt.signals: WATCHDOG from Python, SIGABRT and the other fatal ones from C).
+    signals.enable_stack_dumps()
     return Runtime(args).run().exit_code
