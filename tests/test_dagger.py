@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_train_cli import train_here
+from train_runner import train_here
 
 from jetbot_rt.train.expert import Expert
 

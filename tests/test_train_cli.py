@@ -18,12 +18,12 @@ import onnxruntime as ort
 import pytest
 import torch
 from runner import run_cli
+from train_runner import JETBOT_TRAIN, train_cli, train_here, train_main
 
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE
 
 pytest.importorskip("pybullet")
 
-JETBOT_TRAIN = shutil.which("jetbot-train") or str(Path(sys.executable).parent / "jetbot-train")
 METADATA = {
     "jetbot_rt.layout": "NHWC",
     "jetbot_rt.color_order": "RGB",
@@ -39,31 +39,6 @@ QUICK_UPDATE = ("--num-steps", "64", "--update-epochs", "1", "--num-minibatches"
 defaults' update epochs took most of each run's time and prove nothing more)."""
 SMOKE = ("train", "--task", "forward", "--timesteps", "128", "--num-envs", "1", "--workers", "0",
          "--seed", "3", "--no-progress", *QUICK_UPDATE)
-
-
-def train_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([JETBOT_TRAIN, *args], capture_output=True, text=True, timeout=timeout)
-
-
-def train_main(capsys, *args: str) -> tuple[int, str, str]:
-    """``jetbot-train ARGS`` in this process (no interpreter and torch start per case): the
-    exit code (argparse's SystemExit included), stdout and stderr."""
-    from jetbot_rt.train.cli import main
-
-    try:
-        code = main(list(args))
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def train_here(capsys, *args: str) -> subprocess.CompletedProcess:
-    """``train_main`` shaped as ``train_cli``'s result: the runs that resume, start from or
-    repeat the smoke run train in this process (the smoke run, Ctrl-C and two refusals go
-    through the console script; an interpreter and torch start is ~3-5 s a run)."""
-    code, out, err = train_main(capsys, *args)
-    return subprocess.CompletedProcess(args, code, out, err)
 
 
 @pytest.fixture(scope="module")
@@ -268,7 +243,7 @@ def test_help_lists_the_tasks_and_shows_defaults(capsys):
 
 
 def test_help_and_a_refused_flag_never_import_torch():
-    """The parser is built from torch-free dataclasses (``train/args.py``)."""
+    """The parser is built from torch-free dataclasses (``train/hyperparams.py``)."""
     code = ("import sys\n"
             "from jetbot_rt.train.cli import main\n"
             "def code(*argv):\n"

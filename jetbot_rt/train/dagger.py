@@ -100,7 +100,7 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Expert, data: Dataset,
     their finished episodes with its label."""
     beta = 1.0 if iteration == 0 else args.beta * 0.5 ** (iteration - 1)
     n = envs.num_envs
-    # numpy, not tensors (see ppo.py): plain bytes through the pipes
+    # numpy, not tensors (see rollout.WorkerRollouts): plain bytes through the pipes
     weights = {name: w.detach().numpy().copy() for name, w in model.state_dict().items()}
     results = envs.unwrapped.call(
         "collect_labelled", weights, -(-args.steps_per_iteration // n),

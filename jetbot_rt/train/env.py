@@ -29,12 +29,12 @@ MIN_REWARD_DISTANCE = 0.01
 
 
 def forward_reward(distance: float) -> float:
-    """The seed task's reward, ``exp(1/d) - 30``."""
+    """forward's reward, ``exp(1/d) - 30``."""
     return math.exp(1.0 / max(distance, MIN_REWARD_DISTANCE)) - 30.0
 
 
 def task_reward(task: Task, result: dict[str, Any]) -> float:
-    """The registered env's reward: the seed's ``exp(1/d) - 30`` for forward; for the other
+    """The registered env's reward: ``exp(1/d) - 30`` for forward; for the other
     tasks 1 on the step that succeeds, else 0 (shaping for training lives in wrappers)."""
     if task.name == "forward":
         return forward_reward(result["distance"])

@@ -20,11 +20,10 @@ class Expert:
     stop_distance: float = 0.12
     """m, axle to the goal's centre: command zero from here on. Success needs < 0.15 m; the
     robot coasts 0.5-4.5 cm after the zero command (latency up to 0.1 s, motor lag 0.05 s, up
-    to ~0.3 m/s), touching the block at most without pushing it 3 cm. Why 0.12, not 0.13
-    (until issue 11's fourth session): the student's stop is blurred over a few cm (the
-    randomized camera mount moves the block's picture), and at 0.13 most of its misses were
-    stalls 0-1.5 cm outside 0.15 m on dead-band robots; 3 cm of margin on that side instead
-    of 2 (docs/TRAINING.md, "Measured")."""
+    to ~0.3 m/s), touching the block at most without pushing it 3 cm. Why 3 cm inside 0.15 m:
+    the student's stop is blurred over a few cm (the randomized camera mount moves the
+    block's picture), and with 2 cm of margin most of its misses were stalls 0-1.5 cm
+    outside 0.15 m on dead-band robots (docs/TRAINING.md, "Measured")."""
     stop_lead: float = 0.0
     """s; moves the stop point out by speed * this. 0: the stop is a function of where the
     block is, which the camera shows; speed a single frame hardly shows, and a stop that
@@ -53,7 +52,7 @@ class Expert:
     never). A robot that coasts this far (latency, a fast robot) has the block slipping below
     the camera's view (a sliver of red at 0.10 m), a frame a student took for "goal out of
     view": it searched, and pushed the block. Taught to back away there, it does not. 2 cm
-    inside ``stop_distance``, as 0.11 was inside 0.13: the band where it waits kept its width."""
+    inside ``stop_distance``: the band where it waits is 2 cm wide."""
     backoff: float = -0.3
     """The command of both wheels while backing away: slow, so that it stops again before
     the stop distance (at -0.8 the expert itself hunted back and forth under latency)."""

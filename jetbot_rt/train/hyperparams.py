@@ -64,9 +64,9 @@ class ModelConfig:
     """Kernel side of the first convolution (padded by ``(first_kernel - first_stride + 1)
     // 2``; the other two are 3x3, stride 2, padded by 1)."""
     first_stride: int = 2
-    """Stride of the first convolution. 2 (the first networks): 28x28 features from a 56x56
-    image; 4 (with a 6x6 kernel, forward's PPO default): 14x14, and the whole network costs
-    about a quarter of the CPU per frame to train (docs/TRAINING.md, "Speed")."""
+    """Stride of the first convolution. 2: 28x28 features from a 56x56 image; 4 (with a 6x6
+    kernel, forward's PPO default): 14x14, and the whole network costs about a quarter of the
+    CPU per frame to train (docs/TRAINING.md, "Speed")."""
     hidden: int = 128
     """Width of the fully connected layer shared by the actor and critic heads."""
     init_log_std: float = -1.0
@@ -238,8 +238,8 @@ class PPOArgs:
     """Minibatches per rollout in each update epoch (128 frames each with 2 envs)."""
     update_epochs: int = 4
     """Passes over each rollout. With the env at 56x56 the update is most of a step's cost:
-    4 epochs of 2 minibatches cost about half of the first recipe's 8 of 4, and forward
-    learns as well (docs/TRAINING.md, "Speed")."""
+    4 epochs of 2 minibatches cost about half of 8 epochs of 4, and forward learns as well
+    (docs/TRAINING.md, "Speed")."""
     clip_coef: float = 0.2
     """PPO's ratio clip."""
     ent_coef: float = 0.0
@@ -255,7 +255,7 @@ class PPOArgs:
     shaping_coef: float = 1000.0
     """Progress shaping ``c * (d - d')`` per step, d the robot-goal distance in m (it sums
     to ``c * (d_start - d_end)`` over an episode, so it ranks whole episodes as the distance
-    they close does). Far from the block the seed reward is nearly flat (-27.0 at 0.9 m,
+    they close does). Far from the block forward's reward is nearly flat (-27.0 at 0.9 m,
     -24.7 at 0.6 m): without this, a random policy's wheel commands leave no trace in the
     returns that the value function's error does not swamp. 0 turns it off."""
     aim_coef: float = 300.0

@@ -3,11 +3,11 @@
 It takes the exact tensor the runtime feeds an ONNX policy -- ``[N, S, S, 3]`` float32 RGB
 in 0..255 (NHWC, the rl_games layout), S = ``ModelConfig.image_size`` -- and does its own
 scaling (and, with ``pool`` > 1, area downsampling), so the exported graph needs no
-preprocessing outside it. The env renders at S (56 by default, ``POLICY_IMAGE_SIZE``): the
-first bundled policy took 224x224 and area-pooled it by 4 to 56x56 before this same network,
-so the network is unchanged; rendering at 56 skips drawing the 16 pixels of which it kept one.
-About 0.2 M parameters (the seed's rl_games network had ~19 M); 82 k with the 6x6 stride-4
-first layer that forward's PPO default uses (``first_kernel``, ``first_stride``).
+preprocessing outside it. The env renders at S (56 by default, ``POLICY_IMAGE_SIZE``); a
+network of a larger input (``image_size`` 224, ``pool`` 4) area-pools it to 56x56 first, so
+the same convolutions serve both. About 0.2 M parameters (an rl_games network for this input
+has ~19 M); 82 k with the 6x6 stride-4 first layer that forward's PPO default uses
+(``first_kernel``, ``first_stride``).
 """
 
 from __future__ import annotations

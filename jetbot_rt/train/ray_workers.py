@@ -73,11 +73,6 @@ class EnvWorker:
     def spaces(self) -> tuple[gym.Space, gym.Space]:
         return self.envs[0].observation_space, self.envs[0].action_space
 
-    def node_id(self) -> str:
-        import ray
-
-        return ray.get_runtime_context().get_node_id()
-
     def reset(self, seeds: Sequence[int | None], options: dict[str, Any] | None
               ) -> tuple[np.ndarray, list[dict[str, Any]]]:
         results = [env.reset(seed=seed, options=options)

@@ -136,8 +136,8 @@ class WorkerRollouts(RolloutSource):
     def collect(self, model: ActorCritic, update: int) -> Rollout:
         options, device = self.options, self.device
         # numpy, not tensors: torch pickles a tensor as a shared-memory file descriptor
-        # handed over by a resource_sharer thread, which printed a traceback when a worker
-        # died on Ctrl-C mid-handover.
+        # handed over by a resource_sharer thread, which prints a traceback when a worker
+        # dies on Ctrl-C mid-handover.
         weights = {name: w.numpy() for name, w in to_cpu(model.state_dict()).items()}
         segment = stack_segments(self.envs.unwrapped.call(
             "collect", weights, options.num_steps, (options.seed, update)))

@@ -25,7 +25,7 @@ REWARD_TRANSFORMS = ("symlog", "none")
 
 
 def symlog(reward: SupportsFloat) -> float:
-    """``sign(r) ln(1 + |r|)``: compresses the seed reward's -27 .. 2e4 into -3.3 .. 10."""
+    """``sign(r) ln(1 + |r|)``: compresses forward's reward, -27 .. 2e4, into -3.3 .. 10."""
     r = float(reward)
     return float(np.sign(r) * np.log1p(abs(r)))
 
