@@ -108,6 +108,33 @@ def test_terminating_signal_stops_the_motors_first(tmp_path: Path, sig: int,
                    inject_to_board_off_s=round(t_off - t0, 4))
 
 
+def test_the_watchdog_signal_prints_every_stack_then_stops_as_a_fault(tmp_path: Path) -> None:
+    """SIGUSR2 is the unit's WatchdogSignal: every thread's stack (the loop's among them, read
+    while it drives), then the safe stop as a fault; systemd does not restart after it."""
+    mark = f"fs{uuid.uuid4().hex[:12]}"
+    rt = start_driving(tmp_path, mark)
+    try:
+        t0 = time.monotonic()
+        os.kill(rt.pid, signals.WATCHDOG)
+        t_off = wait_for(rt.board_off, OFF_BOUND_S)
+        assert t_off is not None
+        result = rt.finish(30)
+    finally:
+        rt.kill()
+    assert result.returncode == 3, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr and "Fatal Python error" not in result.stderr
+    assert "the stack of every thread" in result.stderr
+    assert "Thread jetbot-rt-loop 0x" in result.stderr and "jetbot_rt/loop.py" in result.stderr
+    end = result.records[-1]
+    assert end["event"] == "end" and end["reason"] == "SIGUSR2 received", end
+    assert end["cmd"] == [0.0, 0.0] and rt.board_off()
+    (stop,) = result.events("safe_stop")
+    assert stop["fault"] is True
+    assert_no_gst_left(mark)
+    record_figures("signal-SIGUSR2-watchdog-real", exit_code=3,
+                   inject_to_board_off_s=round(t_off - t0, 4))
+
+
 def process_state(pid: int) -> str:
     return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
 
@@ -305,7 +332,7 @@ SIGNAL_7_ENDING = {
 }
 NOT_CAUGHT = {
     "SIGKILL", "SIGSTOP",  # cannot be
-    "SIGABRT",  # systemd's WatchdogSignal for a wedged process: it must die
+    "SIGABRT",  # the unit's FinalKillSignal, for a process too wedged to run Python: it dies
     "SIGSEGV", "SIGBUS", "SIGFPE", "SIGILL",  # the process state cannot be trusted
     "SIGPIPE", "SIGXFSZ",  # CPython ignores them: the write fails with an error instead
 }
