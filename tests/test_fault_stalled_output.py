@@ -19,10 +19,8 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import JETBOT_RT, read_telemetry, read_telemetry_safe, wait_for
+from runner import JETBOT_RT, RuntimeProcess, read_telemetry, read_telemetry_safe, wait_for
 from test_fault_matrix import record_figures
-
-from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 LIVENESS_S = 60.0
 """How long a run may take to end once told to (only catches a hang; never a timing)."""
@@ -166,37 +164,29 @@ def test_a_telemetry_fifo_nobody_reads_costs_records_not_the_stop(tmp_path: Path
         while True:
             os.write(filler, b"{}\n" * 1024)
     os.close(filler)
-    chip_file = tmp_path / "chip.json"
-    chip = PCA9685Emulator(0x60, state_file=chip_file)
     policy = policy_models.constant(tmp_path / "p.onnx", (1.0, 1.0))
-    config = tmp_path / "config.toml"
-    config.write_text(f'[camera]\nsource = "gst:videotestsrc name={mark} is-live=true"\n'
-                      f"start_timeout = 10\n{PATIENT}")
-    process = subprocess.Popen(
-        [JETBOT_RT, "run", "--backend", "real", "--policy", str(policy), "--config", str(config),
-         "--telemetry", str(fifo), "--board-emulator", str(chip_file)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    config = (f'[camera]\nsource = "gst:videotestsrc name={mark} is-live=true"\n'
+              f"start_timeout = 10\n{PATIENT}")
+    rt = RuntimeProcess(tmp_path, "real", policy, config=config, telemetry=fifo, duration=None)
     try:
-        driving = wait_for(lambda: process.poll() is not None or not chip.refresh().all_off(),
+        rt.start()  # its telemetry cannot be read here: the board says when it drives
+        driving = wait_for(lambda: rt.process.poll() is not None or not rt.board_off(),
                            LIVENESS_S, interval=0.05)
-        assert driving is not None and process.poll() is None, "it did not drive"
+        assert driving is not None and rt.process.poll() is None, "it did not drive"
         t_signal = time.monotonic()
-        process.send_signal(signal.SIGTERM)
-        t_off = wait_for(lambda: chip.refresh().all_off(), LIVENESS_S)
-        out, err = process.communicate(timeout=LIVENESS_S)
+        os.kill(rt.pid, signal.SIGTERM)
+        t_off = wait_for(rt.board_off, LIVENESS_S)
+        result = rt.finish(LIVENESS_S)
         t_exit = time.monotonic()
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
+        rt.kill()
         os.close(reader)
-    assert process.returncode == 0, out + err
-    assert chip.refresh().all_off(), chip.duties()
-    assert "stopped      SIGTERM received" in out
-    assert "motors       confirmed zero" in out
-    assert "the writer is blocked" in err
-    assert "Traceback" not in err
-    assert t_off is not None
-    record_figures("stalled-telemetry-fifo-real", exit_code=process.returncode,
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert rt.board_off() and t_off is not None
+    assert "stopped      SIGTERM received" in result.stdout
+    assert "motors       confirmed zero" in result.stdout
+    assert "the writer is blocked" in result.stderr
+    assert "Traceback" not in result.stderr
+    record_figures("stalled-telemetry-fifo-real", exit_code=result.returncode,
                    inject_to_board_off_s=round(t_off - t_signal, 4),
                    told_to_exit_s=round(t_exit - t_signal, 4))
