@@ -347,11 +347,15 @@ def test_an_orderly_end_or_a_fault_is_never_restarted_whatever_exec_stop_post_sa
     """systemd (service_shall_restart, src/core/service.c) checks RestartPreventExitStatus=
     first, against the main process's exit code only, and then Restart=. An ExecStopPost that
     fails (exit 1: the board not confirmed off), times out or is killed turns the unit's result
-    into exit-code, timeout or signal; the main process's 0, 2 or 3 still prevents a restart.
-    ExecStopPost keeps no '-': its failure shows as a failed unit."""
+    into exit-code, timeout or signal; the main process's 0, 2 or 3 still prevents a restart,
+    and so does its death by the FinalKillSignal (a watchdog kill is the same fault as the
+    exit 3 the watchdog signal ends in when Python still runs). ExecStopPost keeps no '-': its
+    failure shows as a failed unit."""
     text = service.unit_template()
     assert unit_values(text, "Restart") == ["on-abnormal"]
-    assert set(unit_values(text, "RestartPreventExitStatus")[0].split()) == {"0", "2", "3"}
+    [final_kill] = unit_values(text, "FinalKillSignal")
+    assert set(unit_values(text, "RestartPreventExitStatus")[0].split()) == {
+        "0", "2", "3", final_kill}
     [stop_post] = unit_values(text, "ExecStopPost")
     assert stop_post.startswith("@EXECUTABLE@ stop"), "no '-' or other prefix"
     assert unit_values(text, "StartLimitBurst") == ["3"]
