@@ -13,6 +13,7 @@ at once; ``drain(timeout)`` waits a bounded time (the exit path: ``unblocked``'s
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import queue
@@ -171,6 +172,13 @@ def unblocked(enabled: bool = True, drain_s: float = DRAIN_S) -> Iterator[None]:
                 setattr(sys, name, installed[name])
     try:
         yield
+    except BaseException as exc:
+        if installed and not isinstance(exc, SystemExit):
+            # A bug's traceback, printed by the interpreter after this, must not block the
+            # exit either: the streams stay, and the exit gives them their bounded drain.
+            atexit.register(drain, drain_s)
+            installed.clear()
+        raise
     finally:
         if installed:
             drain(drain_s)

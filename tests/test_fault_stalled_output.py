@@ -153,6 +153,24 @@ def test_the_streams_are_given_back_when_the_command_is_done(tmp_path: Path) -> 
     assert line.startswith("jetbot-rt run: error: --rate: [loop] rate_hz must be")
 
 
+BUG = ("from jetbot_rt import console\n"
+       "with console.unblocked():\n"
+       "    print('before')\n"
+       "    raise RuntimeError('a bug')\n")
+
+
+def test_a_bugs_traceback_reaches_a_reader_and_blocks_no_exit_without_one() -> None:
+    """A traceback is printed by the interpreter after the command has returned: through the
+    same non-blocking streams, drained (bounded) at the exit."""
+    shown = subprocess.run([sys.executable, "-c", BUG], capture_output=True, text=True,
+                           timeout=LIVENESS_S)
+    assert shown.returncode == 1 and shown.stdout == "before\n"
+    assert shown.stderr.rstrip().endswith("RuntimeError: a bug"), shown.stderr
+    with full_pipe() as pipe:
+        process = subprocess.Popen([sys.executable, "-c", BUG], stdout=pipe, stderr=pipe)
+        assert ended(process) == 1
+
+
 @pytest.mark.skipif(shutil.which("gst-launch-1.0") is None, reason="needs gst-launch-1.0")
 def test_a_telemetry_fifo_nobody_reads_costs_records_not_the_stop(tmp_path: Path) -> None:
     mark = f"so{uuid.uuid4().hex[:12]}"
