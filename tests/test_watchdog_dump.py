@@ -92,12 +92,19 @@ class SlowReader:
         return b"".join(self.chunks).decode(errors="replace")
 
 
-def play_the_watchdog(process: subprocess.Popen, timeout: float = 30.0) -> None:
+PATIENT_S = 20.0
+"""How long a test that expects the Python handler waits before the final signal, instead of
+``TimeoutAbortSec``: on a loaded host the main thread may need longer to run, and these tests
+are about what is printed, not how fast (benchmarks/bench_stack_dump.py keeps the unit's 1 s)."""
+
+
+def play_the_watchdog(process: subprocess.Popen, abort_after: float = ABORT_S,
+                      timeout: float = 30.0) -> None:
     """What systemd does when the pings stop: the watchdog signal, then the final one."""
     os.kill(process.pid, WATCHDOG_SIGNAL)
     os.kill(process.pid, signal.SIGCONT)
     try:
-        process.wait(ABORT_S)
+        process.wait(abort_after)
     except subprocess.TimeoutExpired:
         os.kill(process.pid, FINAL_KILL_SIGNAL)
         os.kill(process.pid, signal.SIGCONT)
@@ -170,7 +177,7 @@ def test_a_stopped_process_resumed_by_the_watchdog_signal_prints_every_stack(see
         time.sleep(0.2)
         os.kill(process.pid, signal.SIGSTOP)
         time.sleep(0.3)
-        play_the_watchdog(process)
+        play_the_watchdog(process, abort_after=PATIENT_S)
     finally:
         if process.poll() is None:
             process.kill()
@@ -221,7 +228,7 @@ def test_a_stopped_runtime_resumed_by_the_watchdog_signal_stops_the_motors_and_e
         os.kill(rt.pid, signal.SIGSTOP)
         time.sleep(0.3)
         assert rt.process is not None
-        play_the_watchdog(rt.process)
+        play_the_watchdog(rt.process, abort_after=PATIENT_S)
         result = rt.finish(30)
     finally:
         rt.kill()
