@@ -29,26 +29,15 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
-from test_watchdog_dump import churning_process, play_the_watchdog  # noqa: E402
+from test_watchdog_dump import churning_process, watchdog_ends  # noqa: E402
 
 
 def trial(way: str, seed: int) -> dict:
     process, reader = churning_process("stopped", seed)
-    try:
-        time.sleep(0.2)
-        os.kill(process.pid, signal.SIGSTOP)
-        time.sleep(0.3)
-        if way == "old":
-            os.kill(process.pid, signal.SIGABRT)
-            os.kill(process.pid, signal.SIGCONT)
-            process.wait(30)
-        else:
-            play_the_watchdog(process)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-    err = reader.text()
+    time.sleep(0.2)
+    # old: SIGABRT was the watchdog signal, and it ended the process by itself
+    play = {"first": signal.SIGABRT, "abort_after": 30.0} if way == "old" else {}
+    err = watchdog_ends(process, reader, stopped_for=0.3, **play)
     threads = err.count("most recent call first")
     return {"way": way, "seed": seed, "exit": process.returncode, "threads_dumped": threads}
 

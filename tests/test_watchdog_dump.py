@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import policy_models
 import pytest
@@ -99,16 +100,32 @@ are about what is printed, not how fast (benchmarks/bench_stack_dump.py keeps th
 
 
 def play_the_watchdog(process: subprocess.Popen, abort_after: float = ABORT_S,
-                      timeout: float = 30.0) -> None:
-    """What systemd does when the pings stop: the watchdog signal, then the final one."""
-    os.kill(process.pid, WATCHDOG_SIGNAL)
+                      first: int = WATCHDOG_SIGNAL) -> None:
+    """What systemd does when the pings stop: the watchdog signal (``first``), then, if the
+    process is still there ``abort_after`` s later, the final one; each with SIGCONT."""
+    os.kill(process.pid, first)
     os.kill(process.pid, signal.SIGCONT)
     try:
         process.wait(abort_after)
     except subprocess.TimeoutExpired:
         os.kill(process.pid, FINAL_KILL_SIGNAL)
         os.kill(process.pid, signal.SIGCONT)
-        process.wait(timeout)
+        process.wait(30)
+
+
+def watchdog_ends(process: subprocess.Popen, reader: SlowReader, *,
+                  stopped_for: float | None = None, **play: Any) -> str:
+    """Stop the process for ``stopped_for`` s if given, play the watchdog; its stderr."""
+    try:
+        if stopped_for is not None:
+            os.kill(process.pid, signal.SIGSTOP)
+            time.sleep(stopped_for)
+        play_the_watchdog(process, **play)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    return reader.text()
 
 
 def no_core_dump() -> None:
@@ -173,16 +190,8 @@ def churning_process(how: str, seed: int) -> tuple[subprocess.Popen, SlowReader]
 @pytest.mark.parametrize("seed", range(6))
 def test_a_stopped_process_resumed_by_the_watchdog_signal_prints_every_stack(seed: int) -> None:
     process, reader = churning_process("stopped", seed)
-    try:
-        time.sleep(0.2)
-        os.kill(process.pid, signal.SIGSTOP)
-        time.sleep(0.3)
-        play_the_watchdog(process, abort_after=PATIENT_S)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-    err = reader.text()
+    time.sleep(0.2)
+    err = watchdog_ends(process, reader, stopped_for=0.3, abort_after=PATIENT_S)
     assert process.returncode == 3, f"exit {process.returncode} (-11: SIGSEGV)\n{err[-2000:]}"
     assert "systemd's WatchdogSignal" in err
     threads = re.findall(r"^Thread (\S+) 0x", err, flags=re.MULTILINE)
@@ -194,14 +203,8 @@ def test_a_stopped_process_resumed_by_the_watchdog_signal_prints_every_stack(see
 def test_a_process_wedged_holding_the_gil_prints_every_stack_at_the_final_signal(
         seed: int) -> None:
     process, reader = churning_process("wedged", seed)
-    try:
-        time.sleep(0.6)  # the wedge holds the GIL from 0.3 s on
-        play_the_watchdog(process)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-    err = reader.text()
+    time.sleep(0.6)  # the wedge holds the GIL from 0.3 s on
+    err = watchdog_ends(process, reader)
     assert process.returncode == -signal.SIGABRT, f"exit {process.returncode}\n{err[-2000:]}"
     assert "Fatal Python error: Aborted" in err
     assert re.search(r'line \d+ in wedge\n', err), err[-2000:]
@@ -262,25 +265,21 @@ def test_a_runtime_wedged_holding_the_gil_prints_every_stack_at_the_final_signal
         stdout=subprocess.DEVNULL, stderr=reader.write_fd, env=env, cwd=tmp_path,
         preexec_fn=no_core_dump)
     reader.start()
+
+    def ticks() -> int:
+        return sum(1 for r in read_telemetry_safe(telemetry) if "event" not in r)
+
+    seen = [0]
+
+    def stalled() -> bool:  # no tick for 0.5 s: wedged, the runtime's watchdog with it
+        seen.append(ticks())
+        return len(seen) > 10 and seen[-1] >= 5 and seen[-1] == seen[-11]
+
     try:
-        def ticks() -> int:
-            return sum(1 for r in read_telemetry_safe(telemetry) if "event" not in r)
-
-        assert wait_for(lambda: process.poll() is not None or ticks() >= 5, 60, 0.02)
-        seen = [ticks()]
-
-        def stalled() -> bool:  # no tick for 0.5 s: wedged, the runtime's watchdog with it
-            seen.append(ticks())
-            return len(seen) > 10 and seen[-1] == seen[-11]
-
-        assert wait_for(stalled, 60, 0.05) is not None
+        assert wait_for(lambda: process.poll() is not None or stalled(), 60, 0.05) is not None
         assert process.poll() is None, "it ended: the runtime acted, so it was not wedged"
-        play_the_watchdog(process)
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-    err = reader.text()
+        err = watchdog_ends(process, reader)
     assert process.returncode == -signal.SIGABRT, f"exit {process.returncode}\n{err[-3000:]}"
     assert "Fatal Python error: Aborted" in err
     assert "wedge_backend.py" in err and "in wedge_holding_the_gil" in err, err[-3000:]
