@@ -367,3 +367,17 @@ def test_the_runtime_directory_is_private_and_the_service_runs_ahead_of_the_load
     [nice] = unit_values(text, "Nice")
     assert -20 <= int(nice) < 0
     assert not unit_values(text, "CPUSchedulingPolicy"), "decided: no real-time policy"
+
+
+def test_the_printed_next_steps_paste_into_a_shell(tmp_path: Path) -> None:
+    odd = tmp_path / "my venv" / "bin"
+    odd.mkdir(parents=True)
+    script = odd / "jetbot-rt"
+    shutil.copy2(Path(sysconfig.get_path("scripts")) / "jetbot-rt", script)
+    root = tmp_path / "root"
+    root.mkdir()
+    result = subprocess.run([str(script), "install-service", "--root", str(root), "--user",
+                             "root", "--config", "/etc/jet bot/config.toml"],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert f"sudo '{script}' stop --config '/etc/jet bot/config.toml'" in result.stdout

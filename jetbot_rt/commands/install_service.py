@@ -16,6 +16,7 @@ import os
 import pkgutil
 import pwd
 import re
+import shlex
 import shutil
 import sys
 import sysconfig
@@ -304,14 +305,17 @@ def write_file(path: Path, text: str) -> None:
 def print_next_steps(root: Path, user: str, config: PurePosixPath, executable: Path) -> None:
     if root.resolve() != Path("/"):
         print(f"(staged under {root}; run these on the target once the tree is in place)")
+    # Quoted for a shell: the commands are meant to be pasted.
+    shown_config, shown_executable = shlex.quote(str(config)), shlex.quote(str(executable))
     steps = [
-        (f"jetbot-rt check --config {config}", "motor board, camera, policy"),
+        (f"jetbot-rt check --config {shown_config}", "motor board, camera, policy"),
         ("sudo systemctl daemon-reload", ""),
         ("sudo systemctl enable --now jetbot-rt", "start now and at every boot"),
         ("systemctl status jetbot-rt", "state and the loop's STATUS= line"),
         ("journalctl -u jetbot-rt -f", "follow the log"),
         # absolute: a venv's bin/ is not on sudo's secure_path
-        (f"sudo {executable} stop --config {config}", "stop the robot from any shell"),
+        (f"sudo {shown_executable} stop --config {shown_config}",
+         "stop the robot from any shell"),
     ]
     width = max(len(command) for command, _ in steps)
     print("next:")
