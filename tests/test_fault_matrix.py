@@ -418,7 +418,7 @@ def test_fault(tmp_path: Path, case: Case, backend: str) -> None:
 @needs_gst
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGABRT], ids=["SIGKILL", "SIGABRT"])
 def test_killed_runtime_then_jetbot_rt_stop(tmp_path: Path, sig: int) -> None:
-    """SIGKILL (systemd's last resort) and SIGABRT (its WatchdogSignal) end the process
+    """SIGKILL (systemd's last resort) and SIGABRT (the unit's FinalKillSignal) end the process
     before any handler of ours runs: the board keeps its duties until ``jetbot-rt stop``,
     which systemd runs as ExecStopPost, turns every output off. The camera child dies with
     its parent (PR_SET_PDEATHSIG)."""
