@@ -7,13 +7,17 @@ directory holding such plants, each of which would leave a marker file if it eve
 
 - the recorder's writer process (``run --record``; ``jetbot-train eval --video`` builds the same
   ``Recorder``), in-process and end to end;
+- the trainer's spawned worker processes (``jetbot-train eval`` and ``train``'s env workers);
 - ``gst-launch-1.0`` (not Python: it is found on PATH, so the end-to-end run also puts an empty
   entry, which means the working directory, first on PATH).
 """
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -90,3 +94,23 @@ def test_a_recorded_real_run_started_in_a_planted_directory_runs_nothing_from_it
     assert len(Recording.open(tmp_path / "rec").ticks) == len(result.ticks) > 5
     assert sorted(os.listdir(tmp_path / "markers")) == []
 
+
+
+def test_the_trainers_worker_processes_never_import_from_the_working_directory(tmp_path):
+    """``jetbot-train eval`` with two workers: its spawned ``python -c`` workers import
+    ``multiprocessing``, ``threading`` and the package before anything of ours runs."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    markers = tmp_path / "markers"
+    plant(shared, markers)
+    for name in ("threading.py", "multiprocessing/__init__.py"):
+        (shared / name).parent.mkdir(parents=True, exist_ok=True)
+        (shared / name).write_text(f"open({str(markers / name.replace('/', '_'))!r}, 'w')\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONSAFEPATH"}
+    result = subprocess.run(
+        [str(Path(sys.executable).with_name("jetbot-train")), "eval", "--task", "forward",
+         "--episodes", "2", "--num-envs", "2", "--no-progress", "--json"],
+        cwd=shared, env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["episodes"] == 2
+    assert sorted(os.listdir(markers)) == []

@@ -15,7 +15,6 @@ Blind baselines and seam ablations (``ablate``), on the same episodes:
 
 from __future__ import annotations
 
-import multiprocessing
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -28,6 +27,7 @@ from jetbot_rt.policy import OnnxPolicy, resolve_policy_path
 from jetbot_rt.sim.tasks import get_task
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
 from jetbot_rt.train.hyperparams import OptionError
+from jetbot_rt.train.vec_env import spawn_context
 from jetbot_rt.train.video import EpisodeRecording, timed
 
 ABLATIONS = ("blank", "bgr", "pixel-range", "constant-forward")
@@ -180,7 +180,7 @@ def evaluate(
                 _WORKER.clear()
         else:
             jobs = [(str(path), task, config, one, ablate, video_dir) for one in seeds]
-            with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            with spawn_context().Pool(workers) as pool:
                 results = []
                 for result in pool.imap_unordered(_run_one, jobs):
                     results.append(result)

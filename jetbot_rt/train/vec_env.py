@@ -13,6 +13,8 @@ every one here resets in the SAME_STEP.
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.context
+import os
 import signal
 from dataclasses import dataclass
 from functools import partial
@@ -24,6 +26,17 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, Vecto
 from jetbot_rt.config import Config
 from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.wrappers import KeepInfo, Shaping, make_train_env
+
+
+def spawn_context() -> multiprocessing.context.SpawnContext:
+    """The ``spawn`` context our worker processes start from. A spawned worker is ``python -c``,
+    which puts the working directory first on ``sys.path`` before it imports anything: a
+    ``threading.py`` or ``jetbot_rt/`` planted where someone trains would run as them.
+    ``PYTHONSAFEPATH`` (Python 3.11+) leaves it out; it is set in this process's environment,
+    so every later child inherits it too. Python 3.10 has no such switch (docs/SAFETY.md)."""
+    os.environ["PYTHONSAFEPATH"] = "1"
+    return multiprocessing.get_context("spawn")
+
 
 EPISODE_INFO = ("episode", "distance", "is_success")
 """The only ``info`` keys PPO reads (at an episode's end); the workers drop the rest."""
@@ -69,6 +82,7 @@ def make_vector_env(spec: EnvSpec, num_envs: int, workers: int | None, *,
                             max_restarts=ray_max_restarts)
     if workers == 0:
         return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
+    spawn_context()
     return AsyncVectorEnv(factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP,
                           shared_memory=True)
 
