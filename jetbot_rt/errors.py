@@ -8,6 +8,10 @@ class UsageError(Exception):
 class Fault(Exception):
     """Something went wrong while driving. Latches the safe stop; the run ends with exit code 3."""
 
+    STOP_REQUEST_GRACE_S = 0.0
+    """How long the loop waits for an orderly stop request before it calls this a fault: a
+    fault that an orderly stop itself causes sets it (see ``hal.motors.BoardAsleep``)."""
+
 
 EXIT_OK = 0
 EXIT_USAGE = 2

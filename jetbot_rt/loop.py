@@ -177,7 +177,9 @@ class ControlLoop:
                 try:
                     self._tick(deadline, now)
                 except Fault as fault:
-                    self.latch.trip(str(fault))
+                    if not (fault.STOP_REQUEST_GRACE_S
+                            and self.latch.wait(fault.STOP_REQUEST_GRACE_S)):
+                        self.latch.trip(str(fault))
                     break
                 except Exception as exc:  # any bug inside a tick ends in the safe stop
                     self.latch.trip(f"exception in tick: {type(exc).__name__}: {exc}")

@@ -71,7 +71,7 @@ def test_run_says_when_it_drives_and_what_the_simulated_robot_did(tmp_path) -> N
         capture_output=True, text=True, timeout=120,
         env=dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run")),
     )
-    assert result.returncode in (0, 3), result.stderr  # 3: a watchdog trip on a loaded machine
+    assert result.returncode == 0, result.stderr  # the sim's watchdog: a hiccup is no fault
     lines = result.stdout.splitlines()
     assert lines[0] == "driving at 30 Hz; Ctrl-C or `jetbot-rt stop` to stop"
     (travelled,) = [line for line in lines if line.strip().startswith("travelled")]

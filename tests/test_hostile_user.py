@@ -306,8 +306,7 @@ def test_another_users_tmp_directory_neither_refuses_nor_intercepts_run(tmp_path
             assert stop.returncode == 0, stop.stdout + stop.stderr
             assert "latched its safe stop" in stop.stdout  # it found V's runtime
             assert f"{taken} (owned by uid {hostile})" in stop_line(stop.stderr, "ignored")
-            # 0: the stop reached it first; 3: its tick found the chip asleep first
-            assert runtime.returncode in (0, 3), out + err
+            assert runtime.returncode == 0, out + err
             assert "Traceback" not in err
             assert accepted == 0 and sorted(p.name for p in taken.iterdir()) == \
                 ["control-1.sock"]

@@ -1,9 +1,11 @@
 import json
+import threading
 import time
 
 import numpy as np
 
 from jetbot_rt.actions import ActionPipeline
+from jetbot_rt.errors import Fault
 from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
 from jetbot_rt.loop import ControlLoop, Safety, Schedule
 from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
@@ -101,6 +103,46 @@ def test_exception_in_tick_latches_fault():
     loop, latch, _, _ = make_loop(Exploding())
     loop.run(duration=1.0)
     assert latch.fault and latch.reason == "exception in tick: RuntimeError: boom"
+
+
+class StoppedFromElsewhere(Fault):
+    STOP_REQUEST_GRACE_S = 0.5
+
+
+class RaisesOnTick:
+    def __init__(self, fault: Fault, on_raise=None):
+        self.fault, self.on_raise = fault, on_raise
+
+    def infer(self, image):
+        if self.on_raise is not None:
+            self.on_raise()
+        raise self.fault
+
+
+def test_a_fault_with_a_grace_ends_in_order_when_the_stop_request_arrives_within_it():
+    loop, latch, _, _ = make_loop(None)
+    request = threading.Timer(0.05, latch.trip, ("jetbot-rt stop from pid 1",),
+                              {"fault": False})
+    loop.policy = RaisesOnTick(StoppedFromElsewhere("board asleep"), request.start)
+    loop.run(duration=2.0)
+    assert not latch.fault and latch.reason == "jetbot-rt stop from pid 1"
+
+
+def test_a_fault_with_a_grace_is_a_fault_when_no_stop_request_arrives():
+    loop, latch, _, _ = make_loop(RaisesOnTick(StoppedFromElsewhere("board asleep")))
+    loop.run(duration=2.0)
+    assert latch.fault and latch.reason == "board asleep"
+    assert latch.t_trip - loop.stats.t_start >= 0.5
+
+
+def test_a_fault_without_a_grace_trips_at_once_even_if_a_stop_request_follows():
+    loop, latch, _, _ = make_loop(None)
+    request = threading.Timer(0.05, latch.trip, ("jetbot-rt stop from pid 1",),
+                              {"fault": False})
+    loop.policy = RaisesOnTick(Fault("plain fault"), request.start)
+    loop.run(duration=2.0)
+    request.join()
+    assert latch.fault and latch.reason == "plain fault"
 
 
 def test_watchdog_stops_a_hung_tick():

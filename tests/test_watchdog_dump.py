@@ -258,10 +258,15 @@ def test_a_runtime_wedged_holding_the_gil_prints_every_stack_at_the_final_signal
     telemetry = tmp_path / "run.jsonl"
     env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC")}
     env["JETBOT_RT_RUNTIME_DIR"] = str(tmp_path / "run")
+    # Patient thresholds: under a loaded CI host the 0.1 s watchdog could trip before the
+    # wedge, and this case is about a process in which no Python runs any more.
+    config = tmp_path / "patient.toml"
+    config.write_text("[loop]\nwatchdog_timeout = 2.0\nmax_frame_age = 2.0\n")
     reader = SlowReader()
     process = subprocess.Popen(
         [sys.executable, str(TESTS / "wedge_backend.py"), "run", "--backend", "wedge",
-         "--policy", str(policy), "--duration", "60", "--telemetry", str(telemetry)],
+         "--policy", str(policy), "--duration", "60", "--telemetry", str(telemetry),
+         "--config", str(config)],
         stdout=subprocess.DEVNULL, stderr=reader.write_fd, env=env, cwd=tmp_path,
         preexec_fn=no_core_dump)
     reader.start()

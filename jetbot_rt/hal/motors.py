@@ -63,7 +63,13 @@ def stop_and_sleep(bus: I2CBus, address: int) -> None:
 
 class BoardAsleep(Fault):
     """The chip sleeps though this drive did not put it to sleep: another process stopped it
-    (``jetbot-rt stop``) or it was reset."""
+    (``jetbot-rt stop``) or it was reset.
+
+    ``jetbot-rt stop`` puts the chip to sleep before it asks the runtime to end, so a tick can
+    land in between: the loop gives that request 30 ms to arrive (the outputs are off, asleep)
+    and ends in order if it does, as a fault if it does not."""
+
+    STOP_REQUEST_GRACE_S = 0.03
 
     def __init__(self, bus: I2CBus, address: int) -> None:
         super().__init__(
