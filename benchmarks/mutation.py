@@ -55,7 +55,7 @@ try:
     from cosmic_ray.work_item import TestOutcome
     from parso.python.tree import Keyword
 except ImportError:
-    sys.exit("benchmarks/mutation.py needs cosmic-ray: pip install 'jetbot_rt[mutation]'")
+    sys.exit("benchmarks/mutation.py needs cosmic-ray: pip install -e '.[mutation]'")
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
@@ -81,6 +81,9 @@ MODULES: dict[str, tuple[list[str], list[str]]] = {
     "jetbot_rt/commands/stop.py": (["tests/test_stop.py"],
                                    ["tests/test_fault_config_read.py", *OWNERSHIP_STOP,
                                     E2E_REAL]),
+    "jetbot_rt/runtime_dir.py": (["tests/test_stop.py", "tests/test_board_record.py"],
+                                 ["tests/test_hostile_user.py", *OWNERSHIP_STOP]),
+    "jetbot_rt/console.py": (["tests/test_fault_stalled_output.py"], [E2E_REAL]),
     # the other end-to-end systemd tests run with the default 0.1 s in-process watchdog, which
     # a loaded machine trips now and then: a false kill here
     "jetbot_rt/systemd_notify.py": (
