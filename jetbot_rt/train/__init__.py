@@ -17,3 +17,12 @@ with contextlib.suppress(ImportError):
     from jetbot_rt.train.registration import register_envs
 
     register_envs()
+
+
+def __getattr__(name: str) -> object:
+    """``from jetbot_rt.train import export_policy`` loads torch then, not with the package."""
+    if name == "export_policy":
+        from jetbot_rt.train.export import export_policy
+
+        return export_policy
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
