@@ -22,12 +22,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import policy_models
 
-from jetbot_rt.actions import ActionPipeline
-from jetbot_rt.hal.null import NullDrive, PartsRobot
-from jetbot_rt.loop import ControlLoop, Safety, Schedule
-from jetbot_rt.policy import OnnxPolicy
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.loop import ControlLoop, Safety, Schedule
+from jetbot_rt.runtime.policy import OnnxPolicy
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.testing.null_robot import NullDrive, PartsRobot
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -17,7 +17,7 @@ import pytest
 from hostile_user import needs_root, unused_uid
 
 from jetbot_rt.hal.ownership import BoardLock
-from jetbot_rt.runtime_dir import MAX_RECORD_BYTES, RECORD_NAME, read_board_record
+from jetbot_rt.service.runtime_dir import MAX_RECORD_BYTES, RECORD_NAME, read_board_record
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 

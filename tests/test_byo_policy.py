@@ -14,9 +14,9 @@ from onnx import TensorProto, helper, numpy_helper
 from policy_models import rl_games_actor_critic
 from test_check import check, robot, rows, write_config  # noqa: F401  (robot is a fixture)
 
-from jetbot_rt.config import PolicyConfig, load_config
+from jetbot_rt.config.sections import PolicyConfig, load_config
 from jetbot_rt.errors import UsageError
-from jetbot_rt.policy import OnnxPolicy
+from jetbot_rt.runtime.policy import OnnxPolicy
 
 SIZE = 64  # the seed's is 224 (19 M parameters); the same layers at 64x64 keep the test small
 

@@ -24,7 +24,7 @@ from test_fault_matrix import needs_gst
 
 from jetbot_rt.cli import main
 from jetbot_rt.hal import registry
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
 
 
 def strict_loads(line: str) -> dict:

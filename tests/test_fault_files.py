@@ -18,7 +18,7 @@ import policy_models
 import pytest
 from runner import JETBOT_RT, on_emulator
 
-from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.runtime.policy import bundled_policy_path
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 MU = (1.0, -0.5)

@@ -27,7 +27,7 @@ from test_fault_matrix import (
     timeline_camera,
 )
 
-from jetbot_rt.stop_socket import request_stop
+from jetbot_rt.service.stop_socket import request_stop
 
 pytestmark = needs_gst
 

@@ -18,9 +18,9 @@ import policy_models
 import pytest
 from runner import RuntimeProcess, processes_with, run_cli, wait_for
 
-from jetbot_rt import config as config_module
 from jetbot_rt.cli import main
-from jetbot_rt.extras import sim_problem
+from jetbot_rt.config import sections as config_module
+from jetbot_rt.workstation import sim_problem
 
 # Every key with a value of the right type but out of its range (or not one of its choices).
 OUT_OF_RANGE = {
@@ -135,7 +135,7 @@ def all_keys() -> list[tuple[str, str, str]]:
 
 
 def test_the_table_names_every_config_key() -> None:
-    """A key added to config.py without a bad-value case here fails this test."""
+    """A key added to the config sections without a bad-value case here fails this test."""
     assert {(s, k) for s, k, _ in all_keys()} == set(OUT_OF_RANGE)
 
 

@@ -26,8 +26,8 @@ import policy_models
 import pytest
 from runner import Result, RuntimeProcess, assert_fixed_rate, processes_with, wait_for
 
-from jetbot_rt.config import SIM_WATCHDOG_MIN_S
-from jetbot_rt.safety import STOP_RETRY_S
+from jetbot_rt.config.sections import SIM_WATCHDOG_MIN_S
+from jetbot_rt.runtime.safety import STOP_RETRY_S
 
 PERIOD = 1 / 30
 WATCHDOG = 3 * PERIOD  # the default [loop] watchdog_timeout on the robot (the sim's: 1 s)
@@ -184,7 +184,7 @@ def slow_when_dark_policy(path: Path) -> Path:
     inference on a black frame (a fixed count would be faster than a period on an idle PC)."""
     import numpy as np
 
-    from jetbot_rt.policy import OnnxPolicy
+    from jetbot_rt.runtime.policy import OnnxPolicy
 
     probe = OnnxPolicy.load(policy_models.slow_when_dark(path, 1000, MU))
     black = np.zeros((224, 224, 3), np.uint8)

@@ -3,11 +3,11 @@ import time
 
 import numpy as np
 
-from jetbot_rt.actions import ActionPipeline
-from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
-from jetbot_rt.loop import ControlLoop, Safety, Schedule
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.loop import ControlLoop, Safety, Schedule
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.testing.null_robot import NullCamera, NullDrive, PartsRobot
 
 
 class ScriptedPolicy:

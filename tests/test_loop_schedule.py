@@ -12,14 +12,14 @@ import json
 import numpy as np
 import pytest
 
-from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.hal.base import Camera, Frame
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
-from jetbot_rt.hal.null import PartsRobot
-from jetbot_rt.loop import ControlLoop, Safety, Schedule
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.loop import ControlLoop, Safety, Schedule
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch
+from jetbot_rt.testing.null_robot import PartsRobot
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 PERIOD = 0.25  # a power of two: every sum of periods below is exact in binary floating point

@@ -15,7 +15,7 @@ import pytest
 
 from jetbot_rt.cli import main
 from jetbot_rt.commands import install_service as service
-from jetbot_rt.config import Config, load_config
+from jetbot_rt.config.sections import Config, load_config
 from jetbot_rt.errors import UsageError
 
 REPO = Path(__file__).resolve().parents[1]

@@ -23,7 +23,7 @@ import sysconfig
 import unicodedata
 from pathlib import Path, PurePosixPath
 
-from jetbot_rt import safe_file
+from jetbot_rt.config import safe_file
 from jetbot_rt.errors import UsageError
 
 UNIT_NAME = "jetbot-rt.service"
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     unit_path = staged(root, UNIT_DIR / UNIT_NAME)
     config_path = staged(root, config)
     if config_path.exists() or config_path.is_symlink():
-        from jetbot_rt.config import load_config
+        from jetbot_rt.config.sections import load_config
 
         load_config(config_path)  # an existing config is kept: it must be one the service reads
     unit_action = "wrote"

@@ -21,16 +21,18 @@ from typing import TYPE_CHECKING, Callable, TypeVar
 
 import numpy as np
 
-from jetbot_rt import console, signals
-from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.commands.shutdown import Shutdown
-from jetbot_rt.config import Config, load_config, set_value
+from jetbot_rt.config.sections import Config, load_config, set_value
 from jetbot_rt.errors import EXIT_USAGE, Fault, UsageError, first_line
 from jetbot_rt.hal import BackendOptions, Robot, make_backend
 from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument, emulator_notice
 from jetbot_rt.hal.registry import BACKEND_MODULES
-from jetbot_rt.loop import ControlLoop, LoopStats, Safety, Schedule, TickResult
-from jetbot_rt.policy import (
+from jetbot_rt.recording.recorder import Recorder
+from jetbot_rt.recording.recorder import open_for_run as open_recorder
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.loop import ControlLoop, LoopStats, Safety, Schedule, TickResult
+from jetbot_rt.runtime.policy import (
     META_PREFIX,
     OnnxPolicy,
     bundled_policy_path,
@@ -38,14 +40,12 @@ from jetbot_rt.policy import (
     resolve_policy_path,
     shown,
 )
-from jetbot_rt.recorder import Recorder
-from jetbot_rt.recorder import open_for_run as open_recorder
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.service import console, signals
 
 if TYPE_CHECKING:
-    from jetbot_rt.stop_socket import ControlServer
-    from jetbot_rt.systemd_notify import Notifier
+    from jetbot_rt.service.stop_socket import ControlServer
+    from jetbot_rt.service.systemd_notify import Notifier
 
 START_POLL_S = 0.02
 """How often the main thread looks at the latch while a start-up step runs in a worker."""
@@ -231,8 +231,8 @@ class Runtime:
         """The service manager's notifier and the control socket (for ``jetbot-rt stop``; one
         per process. A second runtime on the same motor board is refused by the bus's owner
         lock, taken when the robot connects: hal/ownership.py)."""
-        from jetbot_rt.stop_socket import ControlServer
-        from jetbot_rt.systemd_notify import Notifier
+        from jetbot_rt.service.stop_socket import ControlServer
+        from jetbot_rt.service.systemd_notify import Notifier
 
         notifier = Notifier.from_env()
         self.config.validate_service_watchdog(notifier.watchdog_interval)

@@ -9,15 +9,15 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable
 
 from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE, first_line
-from jetbot_rt.recorder import recording_line
+from jetbot_rt.recording.recorder import recording_line
 
 if TYPE_CHECKING:
     from jetbot_rt.hal import Robot
-    from jetbot_rt.loop import LoopStats
-    from jetbot_rt.recorder import Recorder
-    from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-    from jetbot_rt.systemd_notify import Notifier
-    from jetbot_rt.telemetry import Telemetry
+    from jetbot_rt.recording.recorder import Recorder
+    from jetbot_rt.recording.telemetry import Telemetry
+    from jetbot_rt.runtime.loop import LoopStats
+    from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
+    from jetbot_rt.service.systemd_notify import Notifier
 
 
 @dataclass(frozen=True)

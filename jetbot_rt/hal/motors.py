@@ -25,7 +25,6 @@ import time
 import types
 from typing import TYPE_CHECKING, Any
 
-from jetbot_rt.actions import finite_pair
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.hal.base import Drive
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
@@ -41,9 +40,10 @@ from jetbot_rt.hal.pca9685 import (
     OSCILLATOR_HZ,
     PRE_SCALE,
 )
+from jetbot_rt.runtime.actions import finite_pair
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import MotorsConfig
+    from jetbot_rt.config.sections import MotorsConfig
 
 
 HARDWARE_STOP = bytes((ALL_LED_OFF_H, FULL_BIT))

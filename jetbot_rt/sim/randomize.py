@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from jetbot_rt.config import RandomizeConfig, SimConfig, set_value
+from jetbot_rt.config.sections import RandomizeConfig, SimConfig, set_value
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.appearance import wall_colors
 

@@ -114,7 +114,7 @@ class Scene:
 
 def horizontal_fov_deg() -> float:
     """Of the nominal camera (``[sim] camera_vfov_deg``'s default): 82 degrees."""
-    from jetbot_rt.config import SimConfig
+    from jetbot_rt.config.sections import SimConfig
     from jetbot_rt.sim.camera_model import CAMERA_ASPECT
 
     vfov = SimConfig().camera_vfov_deg

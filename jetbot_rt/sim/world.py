@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from jetbot_rt.actions import finite_pair
 from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
+from jetbot_rt.runtime.actions import finite_pair
 from jetbot_rt.sim import appearance
 from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
 from jetbot_rt.sim.motor import WheelMotors
@@ -30,7 +30,7 @@ from jetbot_rt.sim.pybullet_import import import_pybullet
 p = import_pybullet()
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import SimConfig
+    from jetbot_rt.config.sections import SimConfig
 
 ASSETS = resources.files("jetbot_rt.sim") / "assets"
 

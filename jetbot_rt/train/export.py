@@ -14,10 +14,10 @@ import torch
 from torch import nn
 
 import jetbot_rt
-from jetbot_rt import safe_file
-from jetbot_rt.actions import DEFAULT_MAX_SPEED
+from jetbot_rt.config import safe_file
+from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import UsageError
-from jetbot_rt.safe_file import shown
+from jetbot_rt.runtime.actions import DEFAULT_MAX_SPEED
 from jetbot_rt.train.checkpoint import load_checkpoint
 from jetbot_rt.train.hyperparams import OptionError
 from jetbot_rt.train.model import ActorCritic

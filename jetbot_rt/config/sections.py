@@ -25,7 +25,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10 (JetPack 6) path
     import tomli as tomllib
 
-from jetbot_rt import safe_file
+from jetbot_rt.config import safe_file
 from jetbot_rt.errors import UsageError
 
 MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from jetbot_rt.errors import Fault
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import ActionsConfig
+    from jetbot_rt.config.sections import ActionsConfig
 
 DEFAULT_MAX_SPEED = 0.1
 

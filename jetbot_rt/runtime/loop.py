@@ -19,11 +19,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.errors import Fault
 from jetbot_rt.hal.base import Frame, Robot
-from jetbot_rt.histogram import Histogram
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.histogram import Histogram
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
 
 
 class Policy(Protocol):
