@@ -73,7 +73,8 @@ PEP585 = {"list", "dict", "tuple", "set", "frozenset", "type", "Callable", "Iter
 
 def runtime_generics(source: str) -> list[int]:
     """Lines where a PEP 585 generic or an ``X | None`` is evaluated at run time. A module
-    that calls ``typing.get_type_hints`` evaluates its classes' field annotations (config/sections.py)."""
+    that calls ``typing.get_type_hints`` evaluates its classes' field annotations
+    (config/sections.py)."""
     tree = ast.parse(source)
     skip: set[int] = set()
     evaluated: set[int] = set()

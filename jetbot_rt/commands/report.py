@@ -3,8 +3,8 @@ with mu, duties and the tick's state drawn on them, a marker at a safe stop) and
 (mu, duties, tick time, frame age, overruns and events on one time axis) beside the recording,
 and prints the summary. On a bare telemetry JSONL file it writes ``<name>.png`` only.
 
-The recording is untrusted (``recording/reader.py`` validates it) and so is the directory it sits in:
-each output is written to a new file created without following links and renamed into place
+The recording is untrusted (``recording/reader.py`` validates it) and so is the directory it
+sits in: each output is written to a new file created without following links and renamed into place
 once complete (``safe_file.replaced_file``), so a ``run.png`` planted as a link to another file
 is replaced, not written through. The video is bounded by the ticks: a pause longer than
 ``MAX_GAP_S`` is shortened, and it stops at ``MAX_VIDEO_FRAMES``. An output that cannot be

@@ -82,11 +82,11 @@ class TickResult:
         return record
 
 
-TickObserver = "Callable[[TickResult], None]"
-"""A type alias kept a string: ``collections.abc.Callable[...]`` raises at run time on the
-robot's Python 3.8."""
-"""Called on the control thread after each completed tick: it must return at once (hand work
-to another thread) and never raise."""
+class TickObserver(Protocol):
+    """Called on the control thread after each completed tick: it must return at once (hand
+    work to another thread) and never raise."""
+
+    def __call__(self, result: TickResult, /) -> None: ...
 
 
 @dataclass

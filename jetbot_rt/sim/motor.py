@@ -60,11 +60,6 @@ class WheelMotors:
         """A duty pair written at sub-step index ``substep``; acts after the latency."""
         self._queue.append((substep + self._delay, (left, right)))
 
-    @property
-    def acting_duty(self) -> tuple[float, float]:
-        """The duties the motors act on now (after the latency)."""
-        return self._duty
-
     def substep(
         self, k: int, measured: tuple[float, float] | None
     ) -> tuple[tuple[float, float], tuple[float, float]]:

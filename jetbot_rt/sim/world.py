@@ -281,12 +281,6 @@ class JetbotWorld:
         x, y, _ = self.block_position()
         return math.hypot(x - self._block_start[0], y - self._block_start[1])
 
-    def distractor_positions(self) -> list[tuple[float, float, float]]:
-        """Centres (m) of the distractor blocks, in ``reset``'s order."""
-        c = self._client
-        return [tuple(p.getBasePositionAndOrientation(b, physicsClientId=c)[0])
-                for b in self._distractors]
-
     def robot_speed(self) -> float:
         """Horizontal speed (m/s) of the robot's centre of mass."""
         (vx, vy, _), _ = p.getBaseVelocity(self._robot, physicsClientId=self._client)
