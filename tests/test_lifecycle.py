@@ -17,7 +17,7 @@ class Recorded(Phase):
 
     def __init__(self, name: str, log: list[str], fail_in: str = "",
                  on_enter: object = None) -> None:
-        self.name = name
+        self.name = name  # only this test's log: the runtime's phases are named by class
         self.log = log
         self.fail_in = fail_in
         self.on_enter = on_enter

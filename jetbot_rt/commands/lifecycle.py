@@ -35,11 +35,9 @@ class Cancelled(BaseException):
 
 
 class Phase:
-    """One named step of the start. ``enter`` brings something up; ``exit`` releases it, also
-    after an ``enter`` that failed halfway (it looks at what was opened). ``exit`` should not
-    raise: the driver says on stderr what did and goes on."""
-
-    name = "phase"
+    """One step of the start, named by its class. ``enter`` brings something up; ``exit``
+    releases it, also after an ``enter`` that failed halfway (it looks at what was opened).
+    ``exit`` should not raise: the driver says on stderr what did and goes on."""
 
     def enter(self) -> None:
         raise NotImplementedError

@@ -43,7 +43,6 @@ class Services(Phase):
     process. A second runtime on the same motor board is refused by the bus's owner lock,
     taken when the robot connects: hal/ownership.py)."""
 
-    name = "services"
 
     def __init__(self, rt: Runtime) -> None:
         self.rt = rt
@@ -70,7 +69,6 @@ class Services(Phase):
 class Load(Phase):
     """The policy, loaded in a worker: a stop request ends a load that sits in native code."""
 
-    name = "load"
 
     def __init__(self, rt: Runtime) -> None:
         self.rt = rt
@@ -93,7 +91,6 @@ class Prepare(Phase):
     """The action pipeline and the recorder: the last refusals of bad input before any device
     is opened."""
 
-    name = "prepare"
 
     def __init__(self, rt: Runtime, load: Load) -> None:
         self.rt = rt
@@ -114,7 +111,6 @@ class Prepare(Phase):
 class Connect(Phase):
     """The robot: its motor board opened (every output off), its drive behind the latch."""
 
-    name = "connect"
 
     def __init__(self, rt: Runtime, load: Load, prepare: Prepare) -> None:
         self.rt = rt
@@ -157,7 +153,8 @@ class Connect(Phase):
 
 
 class StartCamera(Phase):
-    name = "start camera"
+    """The camera, on its own: a stop request while it starts ends the start before warm-up
+    (the robot's disconnect stops it)."""
 
     def __init__(self, connect: Connect) -> None:
         self.connect = connect
@@ -171,7 +168,6 @@ class WarmUp(Phase):
     """Run the policy on a real frame; refuse a policy that is too slow or whose first answer
     is not a finite action (bad input: no motor has moved)."""
 
-    name = "warm up"
 
     def __init__(self, rt: Runtime, load: Load, prepare: Prepare, connect: Connect) -> None:
         self.rt = rt
@@ -235,7 +231,6 @@ class PaceGui(Phase):
     tick still advances it by one period) and the watchdog allows for it. Without ``--gui``
     nothing happens."""
 
-    name = "pace gui"
 
     def __init__(self, rt: Runtime, connect: Connect) -> None:
         self.rt = rt
@@ -262,7 +257,6 @@ class Drive(Phase):
     """The loop in its own thread, supervised from the main thread until the latch trips (or
     the loop ends by itself). ``enter`` returns when the driving is over."""
 
-    name = "drive"
 
     def __init__(self, rt: Runtime, services: Services, load: Load, prepare: Prepare,
                  connect: Connect, warm_up: WarmUp) -> None:
