@@ -10,9 +10,9 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
+from check_helpers import check, rows, write_config
 from onnx import TensorProto, helper, numpy_helper
 from policy_models import rl_games_actor_critic
-from test_check import check, robot, rows, write_config  # noqa: F401  (robot is a fixture)
 
 from jetbot_rt.config.sections import PolicyConfig, load_config
 from jetbot_rt.errors import UsageError
@@ -86,7 +86,7 @@ def test_clip_is_refused_for_a_uint8_input_and_must_be_positive(tmp_path) -> Non
         load_config(bad)
 
 
-def test_check_shows_how_the_model_is_fed(robot, tmp_path) -> None:  # noqa: F811
+def test_check_shows_how_the_model_is_fed(robot, tmp_path) -> None:
     model = rl_games_actor_critic(robot / "policy.onnx", SIZE)
     config = write_config(robot, "gst:videotestsrc is-live=true")
     config.write_text(config.read_text() + "[policy]\nclip = 5.0\n")

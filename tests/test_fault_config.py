@@ -19,8 +19,8 @@ from pathlib import Path
 import dying_backend
 import policy_models
 import pytest
+from fault_helpers import needs_gst
 from runner import processes_with, run_cli
-from test_fault_matrix import needs_gst
 
 from jetbot_rt.cli import main
 from jetbot_rt.hal import registry

@@ -16,8 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from fault_helpers import record_figures
 from runner import JETBOT_RT, on_emulator, wait_for
-from test_fault_matrix import record_figures
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive

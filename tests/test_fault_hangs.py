@@ -16,8 +16,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import RuntimeProcess, processes_with, wait_for
-from test_fault_matrix import (
+from fault_helpers import (
     MU,
     assert_no_gst_left,
     live_camera,
@@ -26,6 +25,7 @@ from test_fault_matrix import (
     record_figures,
     timeline_camera,
 )
+from runner import RuntimeProcess, processes_with, wait_for
 
 from jetbot_rt.service.stop_socket import request_stop
 

@@ -25,8 +25,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import JETBOT_RT, RuntimeProcess, on_emulator, processes_with, wait_for
-from test_fault_matrix import (
+from fault_helpers import (
     MU,
     assert_no_gst_left,
     live_camera,
@@ -34,6 +33,7 @@ from test_fault_matrix import (
     real_config,
     record_figures,
 )
+from runner import JETBOT_RT, RuntimeProcess, on_emulator, processes_with, wait_for
 
 OFF_AFTER_STOP_S = 10.0
 """Bound asserted on: ``jetbot-rt stop`` started -> every output of the board off (an

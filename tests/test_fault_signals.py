@@ -19,8 +19,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import RuntimeProcess, processes_with, wait_for
-from test_fault_matrix import (
+from fault_helpers import (
     MU,
     assert_no_gst_left,
     live_camera,
@@ -28,6 +27,7 @@ from test_fault_matrix import (
     real_config,
     record_figures,
 )
+from runner import RuntimeProcess, processes_with, wait_for
 
 from jetbot_rt.service import signals
 

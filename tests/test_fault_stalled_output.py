@@ -19,8 +19,8 @@ from pathlib import Path
 
 import policy_models
 import pytest
+from fault_helpers import record_figures
 from runner import JETBOT_RT, RuntimeProcess, read_telemetry, read_telemetry_safe, wait_for
-from test_fault_matrix import record_figures
 
 LIVENESS_S = 60.0
 """How long a run may take to end once told to (only catches a hang; never a timing)."""

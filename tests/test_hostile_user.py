@@ -25,6 +25,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
+from fault_helpers import live_camera, needs_gst, real_config, record_figures
 from hostile_user import (
     as_user,
     command,
@@ -35,7 +36,6 @@ from hostile_user import (
     user_env,
 )
 from runner import read_telemetry_safe, wait_for
-from test_fault_matrix import live_camera, needs_gst, real_config, record_figures
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive

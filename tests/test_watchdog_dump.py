@@ -30,8 +30,8 @@ from typing import Any
 
 import policy_models
 import pytest
+from fault_helpers import MU, assert_no_gst_left, live_camera, real_config
 from runner import RuntimeProcess, read_telemetry_safe, wait_for
-from test_fault_matrix import MU, assert_no_gst_left, live_camera, real_config
 
 from jetbot_rt.commands import install_service
 from jetbot_rt.service import signals
