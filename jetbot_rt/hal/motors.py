@@ -26,7 +26,7 @@ import types
 from typing import TYPE_CHECKING, Any
 
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.hal.base import Drive
+from jetbot_rt.hal.base import Drive, finite_pair
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
 from jetbot_rt.hal.pca9685 import (
     ALL_LED_OFF_H,
@@ -40,7 +40,6 @@ from jetbot_rt.hal.pca9685 import (
     OSCILLATOR_HZ,
     PRE_SCALE,
 )
-from jetbot_rt.runtime.actions import finite_pair
 
 if TYPE_CHECKING:
     from jetbot_rt.config.sections import MotorsConfig

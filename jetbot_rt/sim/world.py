@@ -20,8 +20,7 @@ import cv2
 import numpy as np
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
-from jetbot_rt.runtime.actions import finite_pair
+from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE, finite_pair
 from jetbot_rt.sim import appearance
 from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
 from jetbot_rt.sim.motor import WheelMotors
