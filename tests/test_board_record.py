@@ -1,6 +1,6 @@
 """The board record: a runtime that takes the board writes where it is (bus, address,
 emulator) into its runtime directory; ``jetbot-rt stop`` (systemd's ExecStopPost) reads it,
-as an untrusted file, when its config cannot be read (issue 25)."""
+as an untrusted file, when its config cannot be read."""
 
 from __future__ import annotations
 

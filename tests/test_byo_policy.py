@@ -1,4 +1,4 @@
-"""A policy trained elsewhere (docs/BRING_YOUR_OWN_POLICY.md): the seed's rl_games network,
+"""A policy trained elsewhere (docs/BRING_YOUR_OWN_POLICY.md): the reference rl_games network,
 exported as its export_onnx.py did (input ``obs`` NHWC float32, outputs ``mu``, ``log_std``,
 ``value``, opset 16, no metadata), driven with the [policy] keys that state its training."""
 
@@ -18,7 +18,7 @@ from jetbot_rt.config.sections import PolicyConfig, load_config
 from jetbot_rt.errors import UsageError
 from jetbot_rt.runtime.policy import OnnxPolicy
 
-SIZE = 64  # the seed's is 224 (19 M parameters); the same layers at 64x64 keep the test small
+SIZE = 64  # the reference's is 224 (19 M parameters); the same layers at 64x64 keep the test small
 
 
 def camera_frame(seed: int = 1) -> np.ndarray:

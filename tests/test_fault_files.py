@@ -1,4 +1,4 @@
-"""Fault matrix, files the runtime could destroy or misread (issue 9, class 6): a telemetry
+"""Fault matrix, files the runtime could destroy or misread (class 6): a telemetry
 path that is the policy or the config is refused (exit 2) before anything is opened; a start,
 even one refused with exit 2, never truncates the previous run's telemetry (a refused start
 appends its ``end`` record; a run that starts moves the previous file to ``<path>.1``); an

@@ -1,4 +1,4 @@
-"""Fault matrix, exit paths that hang (issue 9, class 5): telemetry to a FIFO whose reader
+"""Fault matrix, exit paths that hang (class 5): telemetry to a FIFO whose reader
 stalls or is absent, a stop request or signal during warm-up, idle clients on the control
 socket. Each ends with the board all off within the stated bound, the documented exit code,
 one line at most on stderr, no traceback and no camera child left (docs/SAFETY.md).

@@ -109,8 +109,8 @@ OUT_OF_RANGE = {
     ("randomize", "image_brightness"): [-2.0, 0.1],
     ("randomize", "image_contrast"): [0.8, 4.0],
 }
-# Every duration and rate is bounded at both ends (issue 9: a 1e-10 Hz rate crashed the loop
-# thread, a 1e10 s timeout the watchdog's wait); TOML's inf and nan too.
+# Every duration and rate is bounded at both ends (unbounded, a 1e-10 Hz rate would crash
+# the loop thread, a 1e10 s timeout the watchdog's wait); TOML's inf and nan too.
 MORE_OUT_OF_RANGE = [
     ("loop", "rate_hz", 1e-10), ("loop", "rate_hz", 1000.0), ("loop", "rate_hz", "inf"),
     ("loop", "max_frame_age", 1e10), ("loop", "watchdog_timeout", 1e10),

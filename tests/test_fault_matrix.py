@@ -1,4 +1,4 @@
-"""The fault-injection matrix (issue 6; docs/SAFETY.md is its written form).
+"""The fault-injection matrix (docs/SAFETY.md is its written form).
 
 Every fault is injected while the robot drives: ``jetbot-rt run`` in a subprocess, on the sim
 backend and on the real backend (a real GStreamer camera, the register-level PCA9685 emulator

@@ -1,4 +1,4 @@
-"""Fault matrix, who drives the board (issue 9, classes 2 and 3; docs/SAFETY.md, "What a stop
+"""Fault matrix, who drives the board (classes 2 and 3; docs/SAFETY.md, "What a stop
 guarantees").
 
 - ``jetbot-rt stop`` defeats a runtime it cannot talk to (another runtime directory, no
@@ -216,8 +216,8 @@ def test_execstoppost_with_an_unreadable_config_finds_the_board_the_runtime_reco
     """The runtime drives the board its config names (bus 4, 0x41) and is killed (SIGKILL:
     nothing of its own runs); then its config is replaced by one that cannot be read. The
     ExecStopPost ``stop``, given only that config (no ``--board-emulator``), turns off the
-    board the runtime recorded when it took it (issue 25: it fell back to bus 1 at 0x60 and
-    reported a false failure)."""
+    board the runtime recorded when it took it (not the default bus 1 at 0x60, which would
+    report a false failure)."""
     mark = f"fm{uuid.uuid4().hex[:12]}"
     policy = policy_models.constant(tmp_path / "policy.onnx", MU)
     rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(

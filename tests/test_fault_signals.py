@@ -1,4 +1,4 @@
-"""Fault matrix, signals (issue 9, class 4): every catchable signal whose default action ends
+"""Fault matrix, signals (class 4): every catchable signal whose default action ends
 or stops the process ends a run in the safe stop first; a signal during start-up ends it in
 order (exit 0, one line, no traceback); Ctrl-Z zeroes the motors before the process stops
 and ends the run on SIGCONT; ``check --spin`` never leaves a wheel pulsing.

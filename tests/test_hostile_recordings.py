@@ -1,4 +1,4 @@
-"""Recordings are untrusted input (issue 25): replay and report read every file of one through
+"""Recordings are untrusted input: replay and report read every file of one through
 ``safe_file`` and validate every record once; whatever is wrong is one line on stderr and
 exit 2, never a traceback, a hang, memory or disk without end, or a write through a planted
 link. Each example the adversarial review found is here as a regression test, end to end

@@ -1,5 +1,5 @@
 """A second local user against ``jetbot-rt stop``, the control socket's directory and the
-emulator's state file (issue 25; docs/SAFETY.md, "Untrusted input and sure exits").
+emulator's state file (docs/SAFETY.md, "Untrusted input and sure exits").
 
 The stop puts the chip to sleep before it asks any process anything, asks every socket it
 trusts at once within ``ASK_TOTAL_S`` in all, and ignores (and names, in one line) whatever

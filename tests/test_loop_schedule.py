@@ -225,7 +225,7 @@ class TestDurationAndRecords:
         assert [r["infer_ms"] for r in records] == [0.0, 31.25, 0.0, 0.0]
         assert [r["write_ms"] for r in records] == [15.625] * 4
         assert [r["advance_ms"] for r in records] == [62.5] * 4
-        # the tick is read -> update -> write; the sim step is timed apart (issue 12)
+        # the tick is read -> update -> write; the sim step is timed apart
         assert [r["tick_ms"] for r in records] == [15.625, 46.875, 15.625, 15.625]
         assert [r["overruns"] for r in records] == [0] * 4
         assert loop.stats.tick_ms.max == 46.875

@@ -216,7 +216,7 @@ def render_unit(executable: Path, user: str, config: PurePosixPath) -> str:
 
 def unit_value(what: str, value: str) -> str:
     """``value`` if systemd reads it back as the same text, else ``UsageError`` (one line):
-    a control character (a newline would start a new setting: issue 22's injection), a line
+    a control character (a newline would start a new setting: an injected line), a line
     separator, or bytes that are not UTF-8 (a unit file is UTF-8)."""
     for char in value:
         category = unicodedata.category(char)

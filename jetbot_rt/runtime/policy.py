@@ -92,7 +92,7 @@ def bundled_policy_path(task: str = DEFAULT_TASK) -> Path:
 def bundled_task(config: Config) -> str:
     """The task whose bundled policy a run without ``--policy`` drives: ``[sim] task`` where
     one is bundled for it (``jetbot-rt run --backend sim`` with ``[sim] task = "seek"`` drives
-    the seek policy in the seek scene), else forward, the seed's task."""
+    the seek policy in the seek scene), else forward, the default task."""
     task = config.sim.task
     return task if task and bundled_policy_path(task).is_file() else DEFAULT_TASK
 

@@ -70,7 +70,7 @@ TASKS: dict[str, Task] = {
     # Why these numbers: docs/TRAINING.md ("The forward task").
     "forward": Task(
         name="forward",
-        description="drive to a red block 0.9 m straight ahead (the seed's task)",
+        description="drive to a red block 0.9 m straight ahead (the default task)",
         robot_pose=(-0.6, 0.0, 0.0),
         block_xy=(0.3, 0.0),
         episode_steps=450,
