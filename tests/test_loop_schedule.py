@@ -17,7 +17,7 @@ from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
 from jetbot_rt.recording.telemetry import Telemetry
 from jetbot_rt.runtime.actions import ActionPipeline
-from jetbot_rt.runtime.loop import ControlLoop, Safety, Schedule
+from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain
 from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch
 from jetbot_rt.testing.null_robot import PartsRobot
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
@@ -132,7 +132,7 @@ def run_loop(durations: dict[int, float], duration: float, late: dict[int, float
         telemetry.t0 = 0.0  # records' t on the simulated clock
     loop = ControlLoop(
         robot=robot, policy=policy, actions=ActionPipeline(),
-        safety=Safety(latch, drive), schedule=Schedule(PERIOD, max_frame_age=1000.0, clock=clock),
+        safety=StopChain(latch, drive), schedule=Schedule(PERIOD, max_frame_age=1000.0, clock=clock),
         observers=[telemetry.observe] if telemetry is not None else [],
     )
     loop.run(duration=duration)
@@ -242,7 +242,7 @@ class TestStaleFrameReason:
         loop = ControlLoop(
             robot=PartsRobot(FreshCamera(clock, age=0.375), timed_drive),
             policy=TimedPolicy(clock, {}), actions=ActionPipeline(),
-            safety=Safety(latch, drive), schedule=Schedule(PERIOD, max_frame_age=0.25, clock=clock),
+            safety=StopChain(latch, drive), schedule=Schedule(PERIOD, max_frame_age=0.25, clock=clock),
         )
         loop.run(duration=4 * PERIOD)
         assert latch.fault

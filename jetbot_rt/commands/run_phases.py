@@ -22,7 +22,7 @@ from jetbot_rt.hal.i2c import emulator_notice
 from jetbot_rt.recording.recorder import Recorder
 from jetbot_rt.recording.recorder import open_for_run as open_recorder
 from jetbot_rt.runtime.actions import ActionPipeline
-from jetbot_rt.runtime.loop import ControlLoop, Safety, Schedule, TickResult
+from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain, TickResult
 from jetbot_rt.runtime.policy import (
     META_PREFIX,
     OnnxPolicy,
@@ -278,7 +278,7 @@ class Drive(Phase):
         watchdog = self.watchdog = Watchdog(rt.latch, watchdog_timeout)
         loop = ControlLoop(
             robot=robot, policy=self.load.policy, actions=self.prepare.actions,
-            safety=Safety(rt.latch, drive, watchdog),
+            safety=StopChain(rt.latch, drive, watchdog),
             schedule=Schedule(loop_cfg.period, rt.config.max_frame_age_s),
             observers=self._observers(), stats=rt.stats,
         )

@@ -119,7 +119,7 @@ class Schedule:
 
 
 @dataclass(frozen=True)
-class Safety:
+class StopChain:
     """The safe-stop chain a tick answers to: the latch, the drive it guards, the watchdog."""
 
     latch: SafeStopLatch
@@ -147,7 +147,7 @@ class ControlLoop:
         robot: Robot,
         policy: Policy,
         actions: ActionPipeline,
-        safety: Safety,
+        safety: StopChain,
         schedule: Schedule,
         observers: Sequence[TickObserver] = (),
         stats: LoopStats | None = None,
