@@ -132,7 +132,8 @@ def run_loop(durations: dict[int, float], duration: float, late: dict[int, float
         telemetry.t0 = 0.0  # records' t on the simulated clock
     loop = ControlLoop(
         robot=robot, policy=policy, actions=ActionPipeline(),
-        safety=StopChain(latch, drive), schedule=Schedule(PERIOD, max_frame_age=1000.0, clock=clock),
+        safety=StopChain(latch, drive),
+        schedule=Schedule(PERIOD, max_frame_age=1000.0, clock=clock),
         observers=[telemetry.observe] if telemetry is not None else [],
     )
     loop.run(duration=duration)
@@ -242,7 +243,8 @@ class TestStaleFrameReason:
         loop = ControlLoop(
             robot=PartsRobot(FreshCamera(clock, age=0.375), timed_drive),
             policy=TimedPolicy(clock, {}), actions=ActionPipeline(),
-            safety=StopChain(latch, drive), schedule=Schedule(PERIOD, max_frame_age=0.25, clock=clock),
+            safety=StopChain(latch, drive),
+            schedule=Schedule(PERIOD, max_frame_age=0.25, clock=clock),
         )
         loop.run(duration=4 * PERIOD)
         assert latch.fault
