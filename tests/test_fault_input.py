@@ -318,7 +318,9 @@ def test_a_second_runtime_is_refused_before_it_touches_the_board(tmp_path) -> No
     policy = policy_models.constant(tmp_path / "policy.onnx", (1.0, 1.0))
     first = RuntimeProcess(tmp_path, "real", policy, duration=30.0,
                            config=f'[camera]\nsource = "gst:videotestsrc name={mark} '
-                                  'is-live=true"\nstart_timeout = 10\n')
+                                  'is-live=true"\nstart_timeout = 10\n'
+                                  # patient: a loaded host's stale frame is not this case
+                                  '[loop]\nwatchdog_timeout = 1.0\nmax_frame_age = 1.0\n')
     try:
         first.start()
         first.wait_ticks(10)
