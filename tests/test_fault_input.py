@@ -19,7 +19,8 @@ import pytest
 from runner import RuntimeProcess, processes_with, run_cli, wait_for
 
 from jetbot_rt.cli import main
-from jetbot_rt.config import sections as config_module
+from jetbot_rt.config import schema
+from jetbot_rt.config.sections import Config
 from jetbot_rt.workstation import sim_problem
 
 # Every key with a value of the right type but out of its range (or not one of its choices).
@@ -127,10 +128,10 @@ WRONG_TYPE = {"bool": "yes", "float": "fast", "int": 1.5, "str": 7, "list[float]
 
 def all_keys() -> list[tuple[str, str, str]]:
     keys = []
-    for section in dataclasses.fields(config_module.Config):
-        types = config_module.key_types(type(section.default_factory()))
+    for section in dataclasses.fields(Config):
+        types = schema.key_types(type(section.default_factory()))
         for key in dataclasses.fields(section.default_factory()):
-            keys.append((section.name, key.name, config_module.type_name(types[key.name])))
+            keys.append((section.name, key.name, schema.type_name(types[key.name])))
     return keys
 
 

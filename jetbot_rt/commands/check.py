@@ -14,7 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from jetbot_rt.config.sections import Config, load_config, set_value
+from jetbot_rt.config.schema import set_value
+from jetbot_rt.config.sections import Config, load_config
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
 from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument

@@ -32,7 +32,8 @@ from jetbot_rt.commands.run_phases import (
     WarmUp,
 )
 from jetbot_rt.commands.shutdown import Shutdown
-from jetbot_rt.config.sections import Config, load_config, set_value
+from jetbot_rt.config.schema import set_value
+from jetbot_rt.config.sections import Config, load_config
 from jetbot_rt.errors import EXIT_USAGE, Fault, UsageError, first_line
 from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument
 from jetbot_rt.hal.registry import BACKEND_MODULES

@@ -1,24 +1,20 @@
 """Runtime configuration: a TOML file loaded into typed dataclasses, then command-line overrides.
 
-Every key is declared here with its type and its valid range; an unknown section or key, a
-wrong type or an out-of-range value raises ``UsageError`` naming the key (``[loop] rate_hz``).
-A key's type is its annotation, read with ``typing.get_type_hints``; its range or choices are
-the field's metadata (``_check``). The annotations are written ``Optional[...]`` and
-``List[...]``, not ``X | None`` and ``list[...]``: the robot's Python 3.8 evaluates them here.
+Every key is declared with its type and its valid range (``config/schema.py``, the engine); an
+unknown section or key, a wrong type or an out-of-range value raises ``UsageError`` naming the
+key (``[loop] rate_hz``). The annotations are written ``Optional[...]`` and ``List[...]``, not
+``X | None`` and ``list[...]``: the robot's Python 3.8 evaluates them here.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import shlex
 import sys
-import typing
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, List, Optional, Union
+from typing import Any, List, Optional
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -26,6 +22,7 @@ else:  # pragma: no cover - Python 3.10 (JetPack 6) path
     import tomli as tomllib
 
 from jetbot_rt.config import safe_file
+from jetbot_rt.config.schema import check, low_high, one_of, pair, rgb, set_value, within
 from jetbot_rt.errors import UsageError
 
 MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")
@@ -39,21 +36,6 @@ PIXEL_RANGES = ("0-255", "0-1", "-1-1")
 FLOOR_TEXTURES = ("checker", "plain")
 
 
-def _check(predicate: Callable[[Any], bool], expected: str) -> dict[str, Any]:
-    return {"check": predicate, "expected": expected}
-
-
-def _within(low: float, high: float, unit: str = "") -> dict[str, Any]:
-    """A finite number in [low, high]: every duration and rate is bounded, so nothing
-    downstream sees 1e-10 Hz or a 1e10 s timeout (a thread's wait overflows on those)."""
-    return _check(lambda v: math.isfinite(v) and low <= v <= high,
-                  f"a number in [{low:g}, {high:g}]{unit}")
-
-
-def _one_of(choices: tuple[str, ...]) -> dict[str, Any]:
-    return _check(lambda v: v in choices, "one of " + ", ".join(repr(c) for c in choices))
-
-
 def _camera_source_ok(value: str) -> bool:
     if value.startswith("gst:") and len(value.strip()) > 4:
         try:
@@ -65,21 +47,6 @@ def _camera_source_ok(value: str) -> bool:
     return value == "csi" or (value.startswith("usb:") and len(value) > 4)
 
 
-def _rgb() -> dict[str, Any]:
-    return _check(lambda v: len(v) == 3 and all(0 <= x <= 1 for x in v), "[r, g, b] in 0..1")
-
-
-def _range(low: float, high: float, unit: str = "") -> dict[str, Any]:
-    return _check(
-        lambda v: len(v) == 2 and low <= v[0] <= v[1] <= high,
-        f"[low, high] with {low} <= low <= high <= {high}{unit}",
-    )
-
-
-def _pair(predicate: Callable[[float], bool], expected: str) -> dict[str, Any]:
-    return _check(lambda v: len(v) == 2 and all(predicate(x) for x in v), expected)
-
-
 SIM_WATCHDOG_MIN_S = 1.0
 """The sim backend's floor for the default watchdog timeout. A simulated world stands still
 while the process is not scheduled, so a desktop's hiccup (seen: 0.103 s at load 1.3) is no
@@ -88,20 +55,20 @@ hazard there; 1 s still ends a hung policy as the robot would, only later."""
 
 @dataclass
 class LoopConfig:
-    rate_hz: float = field(default=30.0, metadata=_within(1.0, 100.0, " Hz"))
+    rate_hz: float = field(default=30.0, metadata=within(1.0, 100.0, " Hz"))
     """Control rate; ticks sit on absolute monotonic deadlines 1/rate_hz apart."""
-    max_frame_age: Optional[float] = field(default=None, metadata=_within(0.005, 10.0, " s"))
+    max_frame_age: Optional[float] = field(default=None, metadata=within(0.005, 10.0, " s"))
     """Seconds; a frame older than this at the start of a tick is refused (a fault).
     Default: 0.15 s, or 1.5 frame intervals where frames come slower (1.5 periods: the sim
     renders once per tick; 1.5 / [camera] fps: the camera); at least that if set."""
-    watchdog_timeout: Optional[float] = field(default=None, metadata=_within(0.01, 10.0, " s"))
+    watchdog_timeout: Optional[float] = field(default=None, metadata=within(0.01, 10.0, " s"))
     """Seconds without a completed tick before the watchdog latches the safe stop.
     Default: three periods, at least 0.1 s (on the sim backend at least 1 s); at least two
     periods if set."""
-    warmup_timeout: float = field(default=300.0, metadata=_within(0.1, 3600.0, " s"))
+    warmup_timeout: float = field(default=300.0, metadata=within(0.1, 3600.0, " s"))
     """Seconds the warm-up may take before the policy is refused; the first inference on a
     Jetson may build a TensorRT engine, which takes minutes."""
-    warmup_runs: int = field(default=3, metadata=_check(lambda v: 1 <= v <= 100, "1..100"))
+    warmup_runs: int = field(default=3, metadata=within(1, 100))
     """Timed inferences before driving; if the fastest is slower than a period, refuse the run."""
 
     @property
@@ -123,18 +90,18 @@ class LoopConfig:
 
 @dataclass
 class PolicyConfig:
-    path: Optional[str] = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    path: Optional[str] = field(default=None, metadata=check(bool, "a file name, not empty"))
     """ONNX file; default (key absent): the policy bundled in the package."""
-    layout: Optional[str] = field(default=None, metadata=_one_of(LAYOUTS))
+    layout: Optional[str] = field(default=None, metadata=one_of(LAYOUTS))
     """Override the input layout read from the model."""
-    color_order: Optional[str] = field(default=None, metadata=_one_of(COLOR_ORDERS))
+    color_order: Optional[str] = field(default=None, metadata=one_of(COLOR_ORDERS))
     """Override the channel order the model expects (metadata, else RGB)."""
-    pixel_range: Optional[str] = field(default=None, metadata=_one_of(PIXEL_RANGES))
+    pixel_range: Optional[str] = field(default=None, metadata=one_of(PIXEL_RANGES))
     """Override the pixel range the model expects (metadata, else 0-255)."""
-    clip: Optional[float] = field(default=None, metadata=_within(0.001, 1e6))
+    clip: Optional[float] = field(default=None, metadata=within(0.001, 1e6))
     """Clip the input values to [-clip, clip] after scaling to pixel_range, as training did:
     rl_games' clip_observations (Isaac Lab's clip_obs, 5.0) clips raw 0..255 pixels to 0..5."""
-    threads: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 64, "1..64"))
+    threads: int = field(default=1, metadata=within(1, 64))
     """onnxruntime CPU threads. One keeps a tick from waiting on a worker thread that the
     scheduler has not woken yet; raise it for a large model on the CPU."""
     providers: Optional[List[str]] = None
@@ -144,36 +111,37 @@ class PolicyConfig:
 @dataclass
 class ActionsConfig:
     max_speed: Optional[float] = field(
-        default=None, metadata=_check(lambda v: 0 < v <= 1, "a number in (0, 1]")
+        default=None, metadata=within(0, 1, open_low=True)
     )
     """Duty at |mu| = 1. Default: the model's metadata, else 0.1."""
     trim: List[float] = field(
         default_factory=lambda: [1.0, 1.0],
-        metadata=_pair(lambda x: 0 <= x <= 2, "two numbers in [0, 2]"),
+        metadata=pair(0, 2),
     )
     """[left, right] gain per wheel, to even out a weaker motor."""
     sign: List[int] = field(
         default_factory=lambda: [1, 1],
-        metadata=_pair(lambda x: x in (1, -1), "two values, each 1 or -1"),
+        metadata=check(lambda v: len(v) == 2 and all(x in (1, -1) for x in v),
+                       "two values, each 1 or -1"),
     )
     """[left, right]: -1 for a motor wired the wrong way round."""
 
 
 @dataclass
 class MotorsConfig:
-    layout: str = field(default="waveshare", metadata=_one_of(MOTOR_LAYOUTS))
-    i2c_bus: int = field(default=1, metadata=_check(lambda v: 0 <= v <= 255, "0..255"))
-    address: int = field(default=0x60, metadata=_check(lambda v: 0x03 <= v <= 0x77, "0x03..0x77"))
-    left_motor: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
+    layout: str = field(default="waveshare", metadata=one_of(MOTOR_LAYOUTS))
+    i2c_bus: int = field(default=1, metadata=within(0, 255))
+    address: int = field(default=0x60, metadata=within(0x03, 0x77, spelled="0x03..0x77"))
+    left_motor: int = field(default=1, metadata=within(1, 4))
     """adafruit_motorhat only: which of MotorKit's motor1..motor4 is the left wheel."""
-    right_motor: int = field(default=2, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
+    right_motor: int = field(default=2, metadata=within(1, 4))
     pwm_frequency: float = field(
-        default=1600.0, metadata=_check(lambda v: 24 <= v <= 1600, "24..1600 Hz")
+        default=1600.0, metadata=within(24, 1600, " Hz")
     )
     """MotorKit's default; the chip's prescaler tops out at about 1526 Hz and takes the nearest."""
-    i2c_retries: int = field(default=3, metadata=_check(lambda v: 0 <= v <= 20, "0..20"))
+    i2c_retries: int = field(default=3, metadata=within(0, 20))
     """Extra attempts after a transient I2C OSError before it counts as a fault."""
-    emulator: Optional[str] = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    emulator: Optional[str] = field(default=None, metadata=check(bool, "a file name, not empty"))
     """Tests and dry runs only: the register-level PCA9685 emulator whose registers live in
     this file stands in for the board on ``i2c_bus`` (``jetbot_rt.testing``; every command
     says so on stdout, ``run`` in its ``start`` event too). ``--board-emulator`` overrides."""
@@ -183,20 +151,20 @@ class MotorsConfig:
 class CameraConfig:
     source: str = field(
         default="csi",
-        metadata=_check(_camera_source_ok, '"csi", "usb:/dev/videoN" or "gst:<pipeline>"'),
+        metadata=check(_camera_source_ok, '"csi", "usb:/dev/videoN" or "gst:<pipeline>"'),
     )
-    sensor_id: int = field(default=0, metadata=_check(lambda v: 0 <= v <= 7, "0..7"))
-    capture_width: int = field(default=1280, metadata=_check(lambda v: 16 <= v <= 8192, "16..8192"))
-    capture_height: int = field(default=720, metadata=_check(lambda v: 16 <= v <= 8192, "16..8192"))
-    fps: float = field(default=30.0, metadata=_within(1.0, 240.0))
-    flip_method: int = field(default=0, metadata=_check(lambda v: 0 <= v <= 7, "0..7"))
-    start_timeout: float = field(default=10.0, metadata=_within(0.1, 600.0, " s"))
+    sensor_id: int = field(default=0, metadata=within(0, 7))
+    capture_width: int = field(default=1280, metadata=within(16, 8192))
+    capture_height: int = field(default=720, metadata=within(16, 8192))
+    fps: float = field(default=30.0, metadata=within(1.0, 240.0))
+    flip_method: int = field(default=0, metadata=within(0, 7))
+    start_timeout: float = field(default=10.0, metadata=within(0.1, 600.0, " s"))
     """Seconds to wait for the first frame before the camera counts as not started."""
 
 
 @dataclass
 class TelemetryConfig:
-    path: Optional[str] = field(default=None, metadata=_check(bool, "a file name, not empty"))
+    path: Optional[str] = field(default=None, metadata=check(bool, "a file name, not empty"))
     """JSON Lines file, one record per tick plus events; none by default. A run that starts
     moves the previous file to ``<path>.1``; a start refused before that only appends."""
 
@@ -207,27 +175,27 @@ class RecordConfig:
     """Directory to record every tick's frame and record into (docs/RECORDING.md); none by
     default. It must not exist or be empty; ``{time}`` becomes the start time (UTC), so that
     each run of the service records into a directory of its own."""
-    queue_frames: int = field(default=64, metadata=_check(lambda v: 1 <= v <= 10000, "1..10000"))
+    queue_frames: int = field(default=64, metadata=within(1, 10000))
     """Frames that may wait for the disk; beyond that a tick's frame is dropped and counted
     (the tick itself never waits)."""
-    min_free_mb: float = field(default=64.0, metadata=_check(lambda v: v >= 0, "a number >= 0"))
+    min_free_mb: float = field(default=64.0, metadata=within(0, None))
     """The recording stops (the robot drives on) when the disk has less free space than this,
     so that a full SD card never starves the system's own logs."""
-    codec: str = field(default="huffyuv", metadata=_one_of(("huffyuv", "ffv1")))
+    codec: str = field(default="huffyuv", metadata=one_of(("huffyuv", "ffv1")))
     """Lossless video codec of the frames: "huffyuv" (little CPU, larger files) or "ffv1"
     (about a third smaller, eight times the CPU; docs/RECORDING.md)."""
 
 
 @dataclass
 class SimConfig:
-    physics_hz: float = field(default=120.0, metadata=_within(10.0, 10000.0, " Hz"))
+    physics_hz: float = field(default=120.0, metadata=within(10.0, 10000.0, " Hz"))
     """Physics sub-step rate; each control tick advances the world by one period (4 sub-steps
     at 30 Hz: the cheapest that keeps 240 Hz's trajectories, docs/SIM.md)."""
-    motor_gain: float = field(default=20.0, metadata=_within(0.01, 1000.0))
+    motor_gain: float = field(default=20.0, metadata=within(0.01, 1000.0))
     """Wheel angular velocity (rad/s) at duty 1.0."""
-    motor_tau: float = field(default=0.05, metadata=_within(0.0, 10.0, " s"))
+    motor_tau: float = field(default=0.05, metadata=within(0.0, 10.0, " s"))
     """First-order lag time constant of the motor (s); 0 for none."""
-    supersample: int = field(default=1, metadata=_check(lambda v: 1 <= v <= 4, "1..4"))
+    supersample: int = field(default=1, metadata=within(1, 4))
     """Render the camera image this many times wider and taller and area-average it down to
     the policy's size: closer to what the real camera's scaled frame shows, at about this
     factor squared times the render cost (docs/SIM.md, "The render-size seam")."""
@@ -239,78 +207,78 @@ class SimConfig:
     ``jetbot_rt.task`` metadata, else ``forward``."""
     wheel_gain: List[float] = field(
         default_factory=lambda: [1.0, 1.0],
-        metadata=_pair(lambda x: 0 < x <= 2, "two numbers in (0, 2]"),
+        metadata=pair(0, 2, open_low=True),
     )
     """[left, right]: multiplies each wheel motor's speed and torque (a loose wheel, a worn
     gearbox). The robot's own [actions] trim is the runtime's answer to it."""
-    deadband: float = field(default=0.0, metadata=_check(lambda v: 0 <= v < 1, "in [0, 1)"))
+    deadband: float = field(default=0.0, metadata=within(0, 1, open_high=True))
     """Duty below which a wheel does not turn (gearbox friction); above it the speed is
     motor_gain * (|duty| - deadband)."""
-    latency: float = field(default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1 s"))
+    latency: float = field(default=0.0, metadata=within(0, 1, " s"))
     """Seconds from a duty write to the motor acting on it (whole physics sub-steps)."""
     camera_latency: float = field(
-        default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1 s")
+        default=0.0, metadata=within(0, 1, " s")
     )
     """Seconds from the world's state to the frame that shows it (whole physics sub-steps)."""
-    stall_torque: Optional[float] = field(default=None, metadata=_within(1e-6, 1e6))
+    stall_torque: Optional[float] = field(default=None, metadata=within(1e-6, 1e6))
     """N m per wheel at duty 1 and standstill: torque then scales with duty and falls with
     speed, as a PWM-driven DC motor's. Default: the ideal motor, 0.15 N m at any duty."""
     camera_pitch_deg: float = field(
-        default=20.0, metadata=_check(lambda v: -60 <= v <= 80, "-60..80 degrees")
+        default=20.0, metadata=within(-60, 80, " degrees")
     )
     """Camera tilt below the horizon."""
     camera_height: float = field(
-        default=0.115, metadata=_check(lambda v: 0.04 <= v <= 0.5, "0.04..0.5 m")
+        default=0.115, metadata=within(0.04, 0.5, " m")
     )
     """Height of the camera's optical centre above the floor."""
     camera_vfov_deg: float = field(
-        default=52.0, metadata=_check(lambda v: 10 <= v <= 150, "10..150 degrees")
+        default=52.0, metadata=within(10, 150, " degrees")
     )
     """Vertical field of view of the (pinhole) camera image."""
     floor_color: List[float] = field(
-        default_factory=lambda: [0.69, 0.667, 0.627], metadata=_rgb()
+        default_factory=lambda: [0.69, 0.667, 0.627], metadata=rgb()
     )
     """The floor's light tiles; dark tiles are this times 0.636."""
-    floor_texture: str = field(default="checker", metadata=_one_of(FLOOR_TEXTURES))
+    floor_texture: str = field(default="checker", metadata=one_of(FLOOR_TEXTURES))
     """"checker" (0.25 m tiles) or "plain" (every tile floor_color)."""
     wall_color: Optional[List[float]] = field(
         default=None,
-        metadata=_check(
+        metadata=check(
             lambda v: len(v) in (3, 12) and all(0 <= x <= 1 for x in v),
             "[r, g, b] or four of them in a row (12 numbers), in 0..1",
         ),
     )
     """[r, g, b]: all four walls this colour; 12 numbers: the walls at +x, -x, +y, -y in
     turn. Default: one colour each (blue +x, green -x, sand +y, lavender -y)."""
-    block_color: List[float] = field(default_factory=lambda: [0.9, 0.05, 0.05], metadata=_rgb())
+    block_color: List[float] = field(default_factory=lambda: [0.9, 0.05, 0.05], metadata=rgb())
     """The goal block."""
     light_direction: List[float] = field(
         default_factory=lambda: [-50.0, 30.0, 100.0],
-        metadata=_check(
+        metadata=check(
             lambda v: len(v) == 3 and all(math.isfinite(x) for x in v) and any(v),
             "three numbers, not all zero",
         ),
     )
     """World-frame direction towards the light (PyBullet's default)."""
     light_intensity: float = field(
-        default=1.0, metadata=_check(lambda v: 0 <= v <= 3, "0..3")
+        default=1.0, metadata=within(0, 3)
     )
     """Scales the renderer's ambient (0.6), diffuse (0.35) and specular (0.05) light."""
-    image_noise: float = field(default=0.0, metadata=_check(lambda v: 0 <= v <= 1, "0..1"))
+    image_noise: float = field(default=0.0, metadata=within(0, 1))
     """Standard deviation of Gaussian pixel noise, as a fraction of full scale (255)."""
-    image_blur: float = field(default=0.0, metadata=_check(lambda v: 0 <= v <= 0.1, "0..0.1"))
+    image_blur: float = field(default=0.0, metadata=within(0, 0.1))
     """Gaussian blur sigma as a fraction of the image width (0.005: 1.1 px at 224)."""
     image_brightness: float = field(
-        default=0.0, metadata=_check(lambda v: -1 <= v <= 1, "-1..1")
+        default=0.0, metadata=within(-1, 1)
     )
     """Added to every pixel, as a fraction of full scale."""
-    image_contrast: float = field(default=1.0, metadata=_check(lambda v: 0 <= v <= 3, "0..3"))
+    image_contrast: float = field(default=1.0, metadata=within(0, 3))
     """Scales each pixel's distance from mid-grey."""
-    camera_stall_after: Optional[float] = field(default=None, metadata=_within(0.001, 1e6, " s"))
+    camera_stall_after: Optional[float] = field(default=None, metadata=within(0.001, 1e6, " s"))
     """Fault injection: the camera delivers no new frame after this many simulated seconds."""
     blackout: Optional[List[float]] = field(
         default=None,
-        metadata=_check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] seconds"),
+        metadata=check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] seconds"),
     )
     """Fault injection: frames are black between these simulated times (a covered lens)."""
 
@@ -323,65 +291,67 @@ class RandomizeConfig:
     enabled: Optional[bool] = None
     """On or off for every env and for `jetbot-rt run` (one draw from [sim] seed);
     default: the task decides (forward: off), and `jetbot-rt run` is off."""
-    wheel_gain: List[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0.1, 2))
+    wheel_gain: List[float] = field(default_factory=lambda: [0.8, 1.2], metadata=low_high(0.1, 2))
     """Factor, drawn for each wheel apart."""
-    motor_gain: List[float] = field(default_factory=lambda: [0.9, 1.1], metadata=_range(0.1, 3))
+    motor_gain: List[float] = field(default_factory=lambda: [0.9, 1.1], metadata=low_high(0.1, 3))
     """Factor on both wheels' speed (battery voltage, wheel size)."""
-    deadband: List[float] = field(default_factory=lambda: [0.0, 0.3], metadata=_range(0, 0.99))
+    deadband: List[float] = field(default_factory=lambda: [0.0, 0.3], metadata=low_high(0, 0.99))
     """A task trains only with a max_speed above the top of this range."""
-    latency: List[float] = field(default_factory=lambda: [0.0, 0.1], metadata=_range(0, 1, " s"))
+    latency: List[float] = field(default_factory=lambda: [0.0, 0.1], metadata=low_high(0, 1, " s"))
     camera_latency: List[float] = field(
-        default_factory=lambda: [0.0, 0.1], metadata=_range(0, 1, " s")
+        default_factory=lambda: [0.0, 0.1], metadata=low_high(0, 1, " s")
     )
     stall_torque: Optional[List[float]] = field(
-        default_factory=lambda: [0.05, 0.1], metadata=_range(0.001, 10, " N m")
+        default_factory=lambda: [0.05, 0.1], metadata=low_high(0.001, 10, " N m")
     )
     """N m; none keeps [sim] stall_torque."""
-    camera_pitch_deg: List[float] = field(default_factory=lambda: [0.8, 1.2], metadata=_range(0, 3))
+    camera_pitch_deg: List[float] = field(
+        default_factory=lambda: [0.8, 1.2], metadata=low_high(0, 3)
+    )
     """Factor (duckietown: camera angle 0.8..1.2)."""
     camera_height: List[float] = field(
-        default_factory=lambda: [0.92, 1.08], metadata=_range(0.35, 4.3)
+        default_factory=lambda: [0.92, 1.08], metadata=low_high(0.35, 4.3)
     )
     """Factor (duckietown: 0.92..1.08)."""
     camera_vfov_deg: List[float] = field(
-        default_factory=lambda: [0.8, 1.2], metadata=_range(0.2, 2.8)
+        default_factory=lambda: [0.8, 1.2], metadata=low_high(0.2, 2.8)
     )
     """Factor (duckietown: camera_fov_y 0.8..1.2)."""
-    floor_color: List[float] = field(default_factory=lambda: [0.35, 1.4], metadata=_range(0, 5))
+    floor_color: List[float] = field(default_factory=lambda: [0.35, 1.4], metadata=low_high(0, 5))
     """Factor on all three channels (lighter or darker), then ``tint``."""
-    floor_plain: float = field(default=0.3, metadata=_within(0.0, 1.0))
+    floor_plain: float = field(default=0.3, metadata=within(0.0, 1.0))
     """Probability that an episode's floor is plain (every tile one colour) instead of
     ``[sim] floor_texture``'s checker: real floors are rarely a checker board."""
     plain_floor_grey: List[float] = field(
-        default_factory=lambda: [0.15, 0.8], metadata=_range(0, 1)
+        default_factory=lambda: [0.15, 0.8], metadata=low_high(0, 1)
     )
     """A plain floor's colour: this grey level, then each channel times ``plain_floor_tint``
     (carpets, linoleum, wood: any hue, dark or light)."""
     plain_floor_tint: List[float] = field(
-        default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5)
+        default_factory=lambda: [0.7, 1.3], metadata=low_high(0, 5)
     )
     """Factor on each channel of a plain floor apart; red at most 1 (never redder than grey:
     the goal is the red block)."""
-    wall_color: List[float] = field(default_factory=lambda: [0.7, 1.3], metadata=_range(0, 5))
+    wall_color: List[float] = field(default_factory=lambda: [0.7, 1.3], metadata=low_high(0, 5))
     """Factor on all three channels of each wall apart, then ``tint``."""
-    block_color: List[float] = field(default_factory=lambda: [0.8, 1.1], metadata=_range(0, 5))
+    block_color: List[float] = field(default_factory=lambda: [0.8, 1.1], metadata=low_high(0, 5))
     """Factor on all three channels, then ``tint``."""
-    tint: List[float] = field(default_factory=lambda: [0.85, 1.15], metadata=_range(0, 5))
+    tint: List[float] = field(default_factory=lambda: [0.85, 1.15], metadata=low_high(0, 5))
     """Factor on each channel of each colour apart: a shift of hue."""
     light_elevation_deg: List[float] = field(
-        default_factory=lambda: [30.0, 90.0], metadata=_range(-90, 90)
+        default_factory=lambda: [30.0, 90.0], metadata=low_high(-90, 90)
     )
     """light_direction: this elevation above the floor, from any azimuth."""
     light_intensity: List[float] = field(
-        default_factory=lambda: [0.5, 1.3], metadata=_range(0, 3)
+        default_factory=lambda: [0.5, 1.3], metadata=low_high(0, 3)
     )
-    image_noise: List[float] = field(default_factory=lambda: [0.0, 0.03], metadata=_range(0, 1))
-    image_blur: List[float] = field(default_factory=lambda: [0.0, 0.006], metadata=_range(0, 0.1))
+    image_noise: List[float] = field(default_factory=lambda: [0.0, 0.03], metadata=low_high(0, 1))
+    image_blur: List[float] = field(default_factory=lambda: [0.0, 0.006], metadata=low_high(0, 0.1))
     image_brightness: List[float] = field(
-        default_factory=lambda: [-0.1, 0.1], metadata=_range(-1, 1)
+        default_factory=lambda: [-0.1, 0.1], metadata=low_high(-1, 1)
     )
     image_contrast: List[float] = field(
-        default_factory=lambda: [0.8, 1.2], metadata=_range(0, 3)
+        default_factory=lambda: [0.8, 1.2], metadata=low_high(0, 3)
     )
 
 
@@ -440,80 +410,6 @@ class Config:
                 f"WATCHDOG=1 every {ping_interval:.3g} s: raise rate_hz to at least "
                 f"{1 / ping_interval:.3g} or WatchdogSec"
             )
-
-
-_SCALARS: dict[Any, str] = {bool: "true or false", float: "a number", int: "an integer",
-                            str: "a string"}
-"""The types a key may have, and how an error names what was expected."""
-
-
-def _optional(hint: Any) -> tuple[Any, bool]:
-    """``Optional[X]`` -> (X, True); anything else -> (itself, False)."""
-    if typing.get_origin(hint) is Union:
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        if len(args) == 1:
-            return args[0], True
-    return hint, False
-
-
-def type_name(hint: Any) -> str:
-    """``float``, ``list[float]``: a key's type as the docs and messages write it."""
-    hint, _ = _optional(hint)
-    if typing.get_origin(hint) is list:
-        return f"list[{type_name(typing.get_args(hint)[0])}]"
-    return hint.__name__
-
-
-@functools.lru_cache(maxsize=None)
-def key_types(section_class: type) -> dict[str, Any]:
-    """Each key of a section and its declared type, from ``typing.get_type_hints`` (the
-    annotations use ``Optional``/``List``, so this works on the robot's Python 3.8 too)."""
-    return typing.get_type_hints(section_class)
-
-
-def _coerce(value: Any, hint: Any) -> Any:
-    """A TOML value as the key's declared type, or ``TypeError`` saying what was expected."""
-    hint, _ = _optional(hint)
-    if typing.get_origin(hint) is list:
-        (item,) = typing.get_args(hint)
-        if not isinstance(value, list):
-            raise TypeError(f"a list of {type_name(item)}")
-        return [_coerce(v, item) for v in value]
-    if hint is bool:
-        ok = isinstance(value, bool)
-    elif hint is float:  # an integer is a number too; true is not (bool is an int in Python)
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    elif hint is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    else:
-        ok = isinstance(value, hint)
-    if not ok:
-        raise TypeError(_SCALARS[hint])
-    return float(value) if hint is float else value
-
-
-def set_value(section_obj: Any, section: str, key: str, value: Any) -> None:
-    """Set one key with type and range checks; errors name ``[section] key``."""
-    fields = {f.name: f for f in dataclasses.fields(section_obj)}
-    if key not in fields:
-        known = ", ".join(sorted(fields))
-        raise UsageError(f"unknown key [{section}] {key} (known keys: {known})")
-    hint = key_types(type(section_obj))[key]
-    if value is None and _optional(hint)[1]:
-        setattr(section_obj, key, None)
-        return
-    try:
-        coerced = _coerce(value, hint)
-    except TypeError as exc:
-        raise UsageError(f"[{section}] {key} must be {exc}, got {value!r}") from None
-    meta = fields[key].metadata
-    try:
-        ok = "check" not in meta or meta["check"](coerced)
-    except ValueError as exc:  # a check that says precisely what is wrong
-        raise UsageError(f"[{section}] {key} must be {exc}") from None
-    if not ok:
-        raise UsageError(f"[{section}] {key} must be {meta['expected']}, got {value!r}")
-    setattr(section_obj, key, coerced)
 
 
 FOREIGN_SECTIONS = ("train",)

@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from jetbot_rt.config.sections import RandomizeConfig, SimConfig, set_value
+from jetbot_rt.config.schema import set_value
+from jetbot_rt.config.sections import RandomizeConfig, SimConfig
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.appearance import wall_colors
 
