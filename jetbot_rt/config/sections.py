@@ -9,7 +9,6 @@ key (``[loop] rate_hz``). The annotations are written ``Optional[...]`` and ``Li
 from __future__ import annotations
 
 import dataclasses
-import math
 import shlex
 import sys
 from dataclasses import dataclass, field
@@ -22,8 +21,9 @@ else:  # pragma: no cover - Python 3.10 (JetPack 6) path
     import tomli as tomllib
 
 from jetbot_rt.config import safe_file
-from jetbot_rt.config.schema import check, low_high, one_of, pair, rgb, set_value, within
+from jetbot_rt.config.schema import check, one_of, pair, set_value, within
 from jetbot_rt.errors import UsageError
+from jetbot_rt.sim.config import RandomizeConfig, SimConfig
 
 MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")
 DEFAULT_FRAME_AGE_S = 0.15
@@ -33,7 +33,6 @@ FRAME_AGE_INTERVALS = 1.5
 LAYOUTS = ("NHWC", "NCHW")
 COLOR_ORDERS = ("RGB", "BGR")
 PIXEL_RANGES = ("0-255", "0-1", "-1-1")
-FLOOR_TEXTURES = ("checker", "plain")
 
 
 def _camera_source_ok(value: str) -> bool:
@@ -184,175 +183,6 @@ class RecordConfig:
     codec: str = field(default="huffyuv", metadata=one_of(("huffyuv", "ffv1")))
     """Lossless video codec of the frames: "huffyuv" (little CPU, larger files) or "ffv1"
     (about a third smaller, eight times the CPU; docs/RECORDING.md)."""
-
-
-@dataclass
-class SimConfig:
-    physics_hz: float = field(default=120.0, metadata=within(10.0, 10000.0, " Hz"))
-    """Physics sub-step rate; each control tick advances the world by one period (4 sub-steps
-    at 30 Hz: the cheapest that keeps 240 Hz's trajectories, docs/SIM.md)."""
-    motor_gain: float = field(default=20.0, metadata=within(0.01, 1000.0))
-    """Wheel angular velocity (rad/s) at duty 1.0."""
-    motor_tau: float = field(default=0.05, metadata=within(0.0, 10.0, " s"))
-    """First-order lag time constant of the motor (s); 0 for none."""
-    supersample: int = field(default=1, metadata=within(1, 4))
-    """Render the camera image this many times wider and taller and area-average it down to
-    the policy's size: closer to what the real camera's scaled frame shows, at about this
-    factor squared times the render cost (docs/SIM.md, "The render-size seam")."""
-    seed: int = 0
-    """Seeds the scene (where the task puts its blocks, as the env's ``reset(seed=...)``),
-    the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
-    task: Optional[str] = None
-    """The scene to build: a task name (``forward``, ``seek``). Default: the policy's
-    ``jetbot_rt.task`` metadata, else ``forward``."""
-    wheel_gain: List[float] = field(
-        default_factory=lambda: [1.0, 1.0],
-        metadata=pair(0, 2, open_low=True),
-    )
-    """[left, right]: multiplies each wheel motor's speed and torque (a loose wheel, a worn
-    gearbox). The robot's own [actions] trim is the runtime's answer to it."""
-    deadband: float = field(default=0.0, metadata=within(0, 1, open_high=True))
-    """Duty below which a wheel does not turn (gearbox friction); above it the speed is
-    motor_gain * (|duty| - deadband)."""
-    latency: float = field(default=0.0, metadata=within(0, 1, " s"))
-    """Seconds from a duty write to the motor acting on it (whole physics sub-steps)."""
-    camera_latency: float = field(
-        default=0.0, metadata=within(0, 1, " s")
-    )
-    """Seconds from the world's state to the frame that shows it (whole physics sub-steps)."""
-    stall_torque: Optional[float] = field(default=None, metadata=within(1e-6, 1e6))
-    """N m per wheel at duty 1 and standstill: torque then scales with duty and falls with
-    speed, as a PWM-driven DC motor's. Default: the ideal motor, 0.15 N m at any duty."""
-    camera_pitch_deg: float = field(
-        default=20.0, metadata=within(-60, 80, " degrees")
-    )
-    """Camera tilt below the horizon."""
-    camera_height: float = field(
-        default=0.115, metadata=within(0.04, 0.5, " m")
-    )
-    """Height of the camera's optical centre above the floor."""
-    camera_vfov_deg: float = field(
-        default=52.0, metadata=within(10, 150, " degrees")
-    )
-    """Vertical field of view of the (pinhole) camera image."""
-    floor_color: List[float] = field(
-        default_factory=lambda: [0.69, 0.667, 0.627], metadata=rgb()
-    )
-    """The floor's light tiles; dark tiles are this times 0.636."""
-    floor_texture: str = field(default="checker", metadata=one_of(FLOOR_TEXTURES))
-    """"checker" (0.25 m tiles) or "plain" (every tile floor_color)."""
-    wall_color: Optional[List[float]] = field(
-        default=None,
-        metadata=check(
-            lambda v: len(v) in (3, 12) and all(0 <= x <= 1 for x in v),
-            "[r, g, b] or four of them in a row (12 numbers), in 0..1",
-        ),
-    )
-    """[r, g, b]: all four walls this colour; 12 numbers: the walls at +x, -x, +y, -y in
-    turn. Default: one colour each (blue +x, green -x, sand +y, lavender -y)."""
-    block_color: List[float] = field(default_factory=lambda: [0.9, 0.05, 0.05], metadata=rgb())
-    """The goal block."""
-    light_direction: List[float] = field(
-        default_factory=lambda: [-50.0, 30.0, 100.0],
-        metadata=check(
-            lambda v: len(v) == 3 and all(math.isfinite(x) for x in v) and any(v),
-            "three numbers, not all zero",
-        ),
-    )
-    """World-frame direction towards the light (PyBullet's default)."""
-    light_intensity: float = field(
-        default=1.0, metadata=within(0, 3)
-    )
-    """Scales the renderer's ambient (0.6), diffuse (0.35) and specular (0.05) light."""
-    image_noise: float = field(default=0.0, metadata=within(0, 1))
-    """Standard deviation of Gaussian pixel noise, as a fraction of full scale (255)."""
-    image_blur: float = field(default=0.0, metadata=within(0, 0.1))
-    """Gaussian blur sigma as a fraction of the image width (0.005: 1.1 px at 224)."""
-    image_brightness: float = field(
-        default=0.0, metadata=within(-1, 1)
-    )
-    """Added to every pixel, as a fraction of full scale."""
-    image_contrast: float = field(default=1.0, metadata=within(0, 3))
-    """Scales each pixel's distance from mid-grey."""
-    camera_stall_after: Optional[float] = field(default=None, metadata=within(0.001, 1e6, " s"))
-    """Fault injection: the camera delivers no new frame after this many simulated seconds."""
-    blackout: Optional[List[float]] = field(
-        default=None,
-        metadata=check(lambda v: len(v) == 2 and 0 <= v[0] < v[1], "[start, end] seconds"),
-    )
-    """Fault injection: frames are black between these simulated times (a covered lens)."""
-
-
-@dataclass
-class RandomizeConfig:
-    """Per-episode ranges for the [sim] knobs (docs/SIM.md, "Domain randomization"). A
-    "factor" range multiplies the [sim] value; the others are the value itself."""
-
-    enabled: Optional[bool] = None
-    """On or off for every env and for `jetbot-rt run` (one draw from [sim] seed);
-    default: the task decides (forward: off), and `jetbot-rt run` is off."""
-    wheel_gain: List[float] = field(default_factory=lambda: [0.8, 1.2], metadata=low_high(0.1, 2))
-    """Factor, drawn for each wheel apart."""
-    motor_gain: List[float] = field(default_factory=lambda: [0.9, 1.1], metadata=low_high(0.1, 3))
-    """Factor on both wheels' speed (battery voltage, wheel size)."""
-    deadband: List[float] = field(default_factory=lambda: [0.0, 0.3], metadata=low_high(0, 0.99))
-    """A task trains only with a max_speed above the top of this range."""
-    latency: List[float] = field(default_factory=lambda: [0.0, 0.1], metadata=low_high(0, 1, " s"))
-    camera_latency: List[float] = field(
-        default_factory=lambda: [0.0, 0.1], metadata=low_high(0, 1, " s")
-    )
-    stall_torque: Optional[List[float]] = field(
-        default_factory=lambda: [0.05, 0.1], metadata=low_high(0.001, 10, " N m")
-    )
-    """N m; none keeps [sim] stall_torque."""
-    camera_pitch_deg: List[float] = field(
-        default_factory=lambda: [0.8, 1.2], metadata=low_high(0, 3)
-    )
-    """Factor (duckietown: camera angle 0.8..1.2)."""
-    camera_height: List[float] = field(
-        default_factory=lambda: [0.92, 1.08], metadata=low_high(0.35, 4.3)
-    )
-    """Factor (duckietown: 0.92..1.08)."""
-    camera_vfov_deg: List[float] = field(
-        default_factory=lambda: [0.8, 1.2], metadata=low_high(0.2, 2.8)
-    )
-    """Factor (duckietown: camera_fov_y 0.8..1.2)."""
-    floor_color: List[float] = field(default_factory=lambda: [0.35, 1.4], metadata=low_high(0, 5))
-    """Factor on all three channels (lighter or darker), then ``tint``."""
-    floor_plain: float = field(default=0.3, metadata=within(0.0, 1.0))
-    """Probability that an episode's floor is plain (every tile one colour) instead of
-    ``[sim] floor_texture``'s checker: real floors are rarely a checker board."""
-    plain_floor_grey: List[float] = field(
-        default_factory=lambda: [0.15, 0.8], metadata=low_high(0, 1)
-    )
-    """A plain floor's colour: this grey level, then each channel times ``plain_floor_tint``
-    (carpets, linoleum, wood: any hue, dark or light)."""
-    plain_floor_tint: List[float] = field(
-        default_factory=lambda: [0.7, 1.3], metadata=low_high(0, 5)
-    )
-    """Factor on each channel of a plain floor apart; red at most 1 (never redder than grey:
-    the goal is the red block)."""
-    wall_color: List[float] = field(default_factory=lambda: [0.7, 1.3], metadata=low_high(0, 5))
-    """Factor on all three channels of each wall apart, then ``tint``."""
-    block_color: List[float] = field(default_factory=lambda: [0.8, 1.1], metadata=low_high(0, 5))
-    """Factor on all three channels, then ``tint``."""
-    tint: List[float] = field(default_factory=lambda: [0.85, 1.15], metadata=low_high(0, 5))
-    """Factor on each channel of each colour apart: a shift of hue."""
-    light_elevation_deg: List[float] = field(
-        default_factory=lambda: [30.0, 90.0], metadata=low_high(-90, 90)
-    )
-    """light_direction: this elevation above the floor, from any azimuth."""
-    light_intensity: List[float] = field(
-        default_factory=lambda: [0.5, 1.3], metadata=low_high(0, 3)
-    )
-    image_noise: List[float] = field(default_factory=lambda: [0.0, 0.03], metadata=low_high(0, 1))
-    image_blur: List[float] = field(default_factory=lambda: [0.0, 0.006], metadata=low_high(0, 0.1))
-    image_brightness: List[float] = field(
-        default_factory=lambda: [-0.1, 0.1], metadata=low_high(-1, 1)
-    )
-    image_contrast: List[float] = field(
-        default_factory=lambda: [0.8, 1.2], metadata=low_high(0, 3)
-    )
 
 
 @dataclass

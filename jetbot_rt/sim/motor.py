@@ -22,7 +22,7 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from jetbot_rt.config.sections import SimConfig
+    from jetbot_rt.sim.config import SimConfig
 
 IDEAL_TORQUE = 0.15
 """N m per wheel: the ideal motor's force limit at any duty (about a small 1:48 gear motor's

@@ -114,8 +114,8 @@ class Scene:
 
 def horizontal_fov_deg() -> float:
     """Of the nominal camera (``[sim] camera_vfov_deg``'s default): 82 degrees."""
-    from jetbot_rt.config.sections import SimConfig
     from jetbot_rt.sim.camera_model import CAMERA_ASPECT
+    from jetbot_rt.sim.config import SimConfig
 
     vfov = SimConfig().camera_vfov_deg
     half = math.atan(CAMERA_ASPECT * math.tan(math.radians(vfov) / 2))

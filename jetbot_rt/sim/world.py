@@ -29,7 +29,7 @@ from jetbot_rt.sim.pybullet_import import import_pybullet
 p = import_pybullet()
 
 if TYPE_CHECKING:
-    from jetbot_rt.config.sections import SimConfig
+    from jetbot_rt.sim.config import SimConfig
 
 ASSETS = resources.files("jetbot_rt.sim") / "assets"
 
