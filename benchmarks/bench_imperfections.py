@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jetbot_rt.config import from_dict
+from jetbot_rt.config.sections import from_dict
 from jetbot_rt.train.env import JetbotEnv
 
 RESULTS = Path(__file__).resolve().parent / "results"

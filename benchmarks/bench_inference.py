@@ -31,8 +31,8 @@ from onnx import numpy_helper, shape_inference  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from policy_models import rl_games_actor_critic  # noqa: E402
 
-from jetbot_rt.config import PolicyConfig  # noqa: E402
-from jetbot_rt.policy import OnnxPolicy, bundled_policy_path  # noqa: E402
+from jetbot_rt.config.sections import PolicyConfig  # noqa: E402
+from jetbot_rt.runtime.policy import OnnxPolicy, bundled_policy_path  # noqa: E402
 
 # One A57 core at 1.43 GHz: NEON does 4 float32 FMAs per cycle at best (11.4 GFLOP/s peak);
 # onnxruntime's MLAS kernels reach roughly a third of that on small convolutions. An

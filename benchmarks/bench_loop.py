@@ -22,12 +22,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import policy_models
 
-from jetbot_rt.actions import ActionPipeline
-from jetbot_rt.hal.null import NullDrive, PartsRobot
-from jetbot_rt.loop import ControlLoop, Safety, Schedule
-from jetbot_rt.policy import OnnxPolicy
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain
+from jetbot_rt.runtime.policy import OnnxPolicy
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.testing.null_robot import NullDrive, PartsRobot
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -50,7 +50,7 @@ def build_loop(policy, period: float, telemetry: Telemetry, watchdog_timeout: fl
     watchdog = Watchdog(latch, watchdog_timeout) if watchdog_timeout else None
     loop = ControlLoop(
         robot=PartsRobot(drive=drive), policy=policy, actions=ActionPipeline(),
-        safety=Safety(latch, guarded, watchdog), schedule=Schedule(period, max_frame_age=1.0),
+        safety=StopChain(latch, guarded, watchdog), schedule=Schedule(period, max_frame_age=1.0),
         observers=[telemetry.observe] if telemetry.enabled else [],
     )
     return loop, latch, watchdog

@@ -41,7 +41,7 @@ def env_rate(kind: str, num_envs: int, workers: int, steps: int) -> float:
         num_envs = workers
     from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
-    from jetbot_rt.config import Config
+    from jetbot_rt.config.sections import Config
     from jetbot_rt.train.env import make_task_env
     from jetbot_rt.train.ray_workers import RayVectorEnv
 

@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from runner import RuntimeProcess
 
-from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.runtime.policy import bundled_policy_path
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SOURCES = {

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from jetbot_rt.config import SimConfig
+from jetbot_rt.sim.config import SimConfig
 from jetbot_rt.sim.world import JetbotWorld
 
 REFERENCE = (448, 448)

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jetbot_rt.config import Config, SimConfig
+from jetbot_rt.config.sections import Config
+from jetbot_rt.sim.config import SimConfig
 from jetbot_rt.sim.world import JetbotWorld
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE, JetbotEnv
 

@@ -40,7 +40,7 @@ first network (5x5 stride-2 first layer) and the learner computing every step's 
 
 
 def measure_throughput(steps: int, num_envs: int, setting: str) -> dict:
-    from jetbot_rt.config import Config
+    from jetbot_rt.config.sections import Config
     from jetbot_rt.train.hyperparams import LEGACY_IMAGE_SIZE, LEGACY_POOL, ModelConfig, ppo_args
     from jetbot_rt.train.model import ActorCritic
     from jetbot_rt.train.ppo import train

@@ -69,11 +69,12 @@ OWNERSHIP_STOP = [f"tests/test_fault_ownership.py::{name}" for name in (
     "test_stop_names_a_process_it_cannot_defeat")]
 MODULES: dict[str, tuple[list[str], list[str]]] = {
     # module: (fast tests, run first with -x; slow tests, run only if the fast ones pass)
-    "jetbot_rt/safety.py": (FAST_SAFETY, ["tests/test_stop_event_order.py", E2E_REAL]),
-    "jetbot_rt/loop.py": (["tests/test_loop_schedule.py", "tests/test_loop.py"],
+    "jetbot_rt/runtime/safety.py": (FAST_SAFETY, ["tests/test_stop_event_order.py", E2E_REAL]),
+    "jetbot_rt/runtime/loop.py": (["tests/test_loop_schedule.py", "tests/test_loop.py"],
                           ["tests/test_stop_event_order.py", E2E_REAL]),
-    "jetbot_rt/actions.py": (["tests/test_actions.py", "tests/test_loop_schedule.py"], [E2E_REAL]),
-    "jetbot_rt/policy.py": (["tests/test_policy.py", "tests/test_policy_orientation.py"],
+    "jetbot_rt/runtime/actions.py": (["tests/test_actions.py", "tests/test_loop_schedule.py"],
+                                     [E2E_REAL]),
+    "jetbot_rt/runtime/policy.py": (["tests/test_policy.py", "tests/test_policy_orientation.py"],
                             ["tests/test_fault_input.py", E2E_REAL]),
     "jetbot_rt/hal/motors.py": (["tests/test_motors.py", "tests/test_i2c.py"],
                                 ["tests/test_stop.py", E2E_REAL, *OWNERSHIP_STOP]),
@@ -86,7 +87,7 @@ MODULES: dict[str, tuple[list[str], list[str]]] = {
     "jetbot_rt/console.py": (["tests/test_fault_stalled_output.py"], [E2E_REAL]),
     # the other end-to-end systemd tests run with the default 0.1 s in-process watchdog, which
     # a loaded machine trips now and then: a false kill here
-    "jetbot_rt/systemd_notify.py": (
+    "jetbot_rt/service/systemd_notify.py": (
         ["tests/test_notify.py"],
         ["tests/test_systemd_e2e.py::TestWatchdogPingsComeFromCompletedTicks"]),
 }
@@ -137,7 +138,7 @@ EQUIVALENT = [
                "reading MODE2 after MODE1 changes nothing: only mode1[0] is used"),
     Equivalent("jetbot_rt/hal/motors.py", "if TYPE_CHECKING:", ("if not TYPE_CHECKING:",),
                "the type-only import also works at run time (no import cycle)"),
-    Equivalent("jetbot_rt/policy.py", _RESHAPE,
+    Equivalent("jetbot_rt/runtime/policy.py", _RESHAPE,
                tuple(_RESHAPE.replace("(-1)", f"({v})") for v in ("~1", "- 2", "-2")),
                "numpy takes any negative size as 'all the rest' (checked on numpy 2.4)"),
     Equivalent("jetbot_rt/hal/motors.py", "SLEEP = bytes((MODE1, MODE1_SLEEP | MODE1_AI))",
@@ -150,7 +151,7 @@ EQUIVALENT = [
                operator="NumberReplacer", unless="-"),
     Equivalent("jetbot_rt/hal/motors.py", "return bytes((0, 0, 0, FULL_BIT))", (), _FULL,
                operator="NumberReplacer", unless="-"),
-    Equivalent("jetbot_rt/actions.py", _CLAMP,
+    Equivalent("jetbot_rt/runtime/actions.py", _CLAMP,
                (_CLAMP.replace("value < low", "value <= low"),
                 _CLAMP.replace("value > high", "value >= high")),
                "at value == bound both return the bound"),
@@ -165,15 +166,15 @@ EQUIVALENT = [
                (), "unreachable defence in depth: load_config turns every failure it can meet "
                "(bytes, size, nesting, TOML, FIFO, values) into UsageError "
                "(tests/test_fault_config_read.py)", operator="ExceptionReplacer"),
-    Equivalent("jetbot_rt/loop.py", '"t": round(self.t_start - t0, 6),',
+    Equivalent("jetbot_rt/runtime/loop.py", '"t": round(self.t_start - t0, 6),',
                ('"t": round(self.t_start - t0, 7),', '"t": round(self.t_start - t0, 5),'),
                "the record's t rounded to 0.1 or 10 us instead of 1 us; ticks are ms apart"),
-    Equivalent("jetbot_rt/systemd_notify.py", _PID,
+    Equivalent("jetbot_rt/service/systemd_notify.py", _PID,
                tuple(_PID.replace("or -1", f"or {v}") for v in ("not 1", "- 0", "- 2", "~1", "+1")),
                "an unparsable WATCHDOG_PID must name no process: -1, 0, -2 and False all do "
                "(only a positive pid can equal ours); +1 differs only for a runtime that is "
                "PID 1 itself (a container's init), which no test here can be"),
-    Equivalent("jetbot_rt/policy.py", _DIM, (_DIM.replace("value > 0", "value != 0"),),
+    Equivalent("jetbot_rt/runtime/policy.py", _DIM, (_DIM.replace("value > 0", "value != 0"),),
                "onnxruntime reports an unknown or negative dimension as None or a name, never "
                "a negative int (checked: dim_value -1 reads back as None)"),
 ]
@@ -206,15 +207,15 @@ class Planted:
 
 
 PLANTED = [
-    Planted("latch flag set after its callbacks", "jetbot_rt/safety.py",
+    Planted("latch flag set after its callbacks", "jetbot_rt/runtime/safety.py",
             "            self._tripped.set()\n        for callback in self._callbacks:\n"
             "            callback(reason)\n",
             "        for callback in self._callbacks:\n            callback(reason)\n"
             "        self._tripped.set()\n",
             ("tests/test_safety_contracts.py",)),
-    Planted("overrun count's + 1 lost", "jetbot_rt/loop.py",
+    Planted("overrun count's + 1 lost", "jetbot_rt/runtime/loop.py",
             "// self.period) + 1", "// self.period)", ("tests/test_loop_schedule.py",)),
-    Planted("NCHW frames fed with height and width swapped", "jetbot_rt/policy.py",
+    Planted("NCHW frames fed with height and width swapped", "jetbot_rt/runtime/policy.py",
             "tensor.transpose(2, 0, 1)", "tensor.transpose(2, 1, 0)",
             ("tests/test_policy_orientation.py",)),
     Planted("the main thread pings WATCHDOG=1", "jetbot_rt/commands/run.py",
@@ -225,7 +226,7 @@ PLANTED = [
     Planted("export parity check skipped", "jetbot_rt/train/export.py",
             "    error = parity_error(model, data)", "    error = 0.0",
             ("tests/test_export_parity.py",)),
-    Planted("stop waits without limit for a hung write", "jetbot_rt/safety.py",
+    Planted("stop waits without limit for a hung write", "jetbot_rt/runtime/safety.py",
             "self._lock.acquire(timeout=STOP_LOCK_TIMEOUT_S)", "self._lock.acquire()",
             ("tests/test_safety_contracts.py",)),
     Planted("safe_stop logged before the motors are zero", "jetbot_rt/commands/run.py",
@@ -238,7 +239,7 @@ PLANTED = [
     Planted("GStreamer child not killed with its parent", "jetbot_rt/hal/gst_camera.py",
             "    _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)\n", "",
             ("tests/test_gst_camera.py::TestAQuietChildDiesWithItsParent",)),
-    Planted("watchdog trips a timeout late", "jetbot_rt/safety.py",
+    Planted("watchdog trips a timeout late", "jetbot_rt/runtime/safety.py",
             "remaining = self._last_kick + self.timeout - self.clock()",
             "remaining = self._last_kick + 2 * self.timeout - self.clock()",
             ("tests/test_safety_contracts.py",)),

@@ -11,7 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from jetbot_rt.config import from_dict
+from jetbot_rt.config.sections import from_dict
 from jetbot_rt.train.env import JetbotEnv
 
 OUT = Path(__file__).resolve().parent.parent / "docs" / "images" / "randomized_views.png"

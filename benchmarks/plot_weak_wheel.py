@@ -13,8 +13,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from jetbot_rt.config import from_dict
-from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.config.sections import from_dict
+from jetbot_rt.runtime.policy import bundled_policy_path
 from jetbot_rt.train.env import JetbotEnv
 from jetbot_rt.train.evaluate import load_policy
 

@@ -11,11 +11,12 @@ import argparse
 import contextlib
 import importlib
 import sys
-from typing import Any
 
-from jetbot_rt import __version__, console, signals
+from jetbot_rt import __version__
+from jetbot_rt.cli_parser import OneLineParser, plain
 from jetbot_rt.errors import EXIT_USAGE, UsageError
-from jetbot_rt.extras import sim_problem
+from jetbot_rt.service import console, signals
+from jetbot_rt.workstation import sim_problem
 
 # subcommand -> (module in jetbot_rt.commands with add_arguments/run, help)
 COMMANDS = {
@@ -28,37 +29,6 @@ COMMANDS = {
     "report": ("report", "look at a recording or a telemetry file: run.mp4, run.png and the "
                "summary"),
 }
-
-
-class HelpFormatter(argparse.HelpFormatter):
-    """Shows each option's default where it has one and the help does not already say it."""
-
-    def _get_help_string(self, action: argparse.Action) -> str:
-        text = action.help or ""
-        default = action.default
-        if (
-            action.option_strings
-            and default not in (None, False, argparse.SUPPRESS)
-            and "default" not in text
-        ):
-            text += " (default: %(default)s)"
-        return text
-
-
-def plain(text: str) -> str:
-    """A docstring line for ``--help``: without reStructuredText's double backquotes."""
-    return text.replace("``", "")
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line and exit code 2, and defaults are shown."""
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        kwargs.setdefault("formatter_class", HelpFormatter)
-        super().__init__(*args, **kwargs)
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
@@ -79,7 +49,7 @@ NEVER_INTERRUPTED = {"stop"}
 resort) finishes writing the stop, then exits with its own code; SIGKILL still ends it."""
 NEVER_BLOCKED = {"run", "stop", "check"}
 """Commands that touch the motor board: their stdout and stderr never block (a pipe nobody
-reads, a terminal stopped by Ctrl-S, a stalled journald), ``jetbot_rt.console``. The others
+reads, a terminal stopped by Ctrl-S, a stalled journald), ``jetbot_rt.service.console``. The others
 (report, replay...) print as Python does: a reader that is slow is waited for."""
 
 

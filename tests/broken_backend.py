@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
+from jetbot_rt.testing.null_robot import NullCamera, NullDrive, PartsRobot
 
 DRIVES: list[NullDrive] = []
 

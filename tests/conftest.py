@@ -21,6 +21,15 @@ def private_runtime_dir(tmp_path_factory, monkeypatch):
     return path
 
 
+@pytest.fixture
+def robot(tmp_path) -> Path:
+    """A directory with a constant 96x96 policy in it, for ``check_helpers.check``."""
+    import policy_models
+
+    policy_models.constant(tmp_path / "policy.onnx", (0.5, 0.5), size=96)
+    return tmp_path
+
+
 # ---- pytest-xdist (README's `pytest -n 2`): tests that must have the machine to themselves --
 
 

@@ -4,7 +4,7 @@ backend's own thread dying. In-process, because only a backend can do these thin
 
 from __future__ import annotations
 
-from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
+from jetbot_rt.testing.null_robot import NullCamera, NullDrive, PartsRobot
 
 DRIVES: list[NullDrive] = []
 BEHAVIOUR = "loop-thread-exits"

@@ -323,9 +323,9 @@ def unknown_operator(path: Path) -> Path:
 
 
 def rl_games_actor_critic(path: Path, size: int = 224, seed: int = 0) -> Path:
-    """rl_games ``actor_critic`` with the seed's cnn: convs 32x8/4, 64x4/2, 64x3/1 (relu),
+    """rl_games ``actor_critic`` with the reference JetBot cnn: convs 32x8/4, 64x4/2, 64x3/1 (relu),
     mlp [512] elu, mu and value heads, a fixed log_std; NHWC input permuted inside. At 224x224
-    it has the seed's 19 M parameters (75 MB); tests use a smaller ``size``."""
+    it has the reference's 19 M parameters (75 MB); tests use a smaller ``size``."""
     rng = np.random.default_rng(seed)
     weights = []
 

@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 from runner import JETBOT_RT
 
-from jetbot_rt.loop import TickResult
-from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
-from jetbot_rt.recorder import Recorder, sha256_of
+from jetbot_rt.recording.recorder import Recorder, sha256_of
+from jetbot_rt.runtime.loop import TickResult
+from jetbot_rt.runtime.policy import OnnxPolicy, bundled_policy_path
 
 TICKS = 20
 RATE_HZ = 30.0

@@ -2,8 +2,8 @@ import math
 
 import pytest
 
-from jetbot_rt.actions import DEFAULT_MAX_SPEED, ActionPipeline, resolve_max_speed
 from jetbot_rt.errors import Fault
+from jetbot_rt.runtime.actions import DEFAULT_MAX_SPEED, ActionPipeline, resolve_max_speed
 
 
 @pytest.mark.parametrize(

@@ -1,6 +1,6 @@
 """The board record: a runtime that takes the board writes where it is (bus, address,
 emulator) into its runtime directory; ``jetbot-rt stop`` (systemd's ExecStopPost) reads it,
-as an untrusted file, when its config cannot be read (issue 25)."""
+as an untrusted file, when its config cannot be read."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import pytest
 from hostile_user import needs_root, unused_uid
 
 from jetbot_rt.hal.ownership import BoardLock
-from jetbot_rt.runtime_dir import MAX_RECORD_BYTES, RECORD_NAME, read_board_record
+from jetbot_rt.service.runtime_dir import MAX_RECORD_BYTES, RECORD_NAME, read_board_record
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 

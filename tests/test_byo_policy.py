@@ -1,4 +1,4 @@
-"""A policy trained elsewhere (docs/BRING_YOUR_OWN_POLICY.md): the seed's rl_games network,
+"""A policy trained elsewhere (docs/BRING_YOUR_OWN_POLICY.md): the reference rl_games network,
 exported as its export_onnx.py did (input ``obs`` NHWC float32, outputs ``mu``, ``log_std``,
 ``value``, opset 16, no metadata), driven with the [policy] keys that state its training."""
 
@@ -10,15 +10,15 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
+from check_helpers import check, rows, write_config
 from onnx import TensorProto, helper, numpy_helper
 from policy_models import rl_games_actor_critic
-from test_check import check, robot, rows, write_config  # noqa: F401  (robot is a fixture)
 
-from jetbot_rt.config import PolicyConfig, load_config
+from jetbot_rt.config.sections import PolicyConfig, load_config
 from jetbot_rt.errors import UsageError
-from jetbot_rt.policy import OnnxPolicy
+from jetbot_rt.runtime.policy import OnnxPolicy
 
-SIZE = 64  # the seed's is 224 (19 M parameters); the same layers at 64x64 keep the test small
+SIZE = 64  # the reference's is 224 (19 M parameters); the same layers at 64x64 keep the test small
 
 
 def camera_frame(seed: int = 1) -> np.ndarray:
@@ -86,7 +86,7 @@ def test_clip_is_refused_for_a_uint8_input_and_must_be_positive(tmp_path) -> Non
         load_config(bad)
 
 
-def test_check_shows_how_the_model_is_fed(robot, tmp_path) -> None:  # noqa: F811
+def test_check_shows_how_the_model_is_fed(robot, tmp_path) -> None:
     model = rl_games_actor_critic(robot / "policy.onnx", SIZE)
     config = write_config(robot, "gst:videotestsrc is-live=true")
     config.write_text(config.read_text() + "[policy]\nclip = 5.0\n")

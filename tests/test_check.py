@@ -6,41 +6,13 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
-import policy_models
 import pytest
+from check_helpers import check, rows, write_config
 
 from jetbot_rt.commands.check import SPIN_DUTY
 from jetbot_rt.hal.i2c import EMULATOR_FLAG
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
-
-
-@pytest.fixture
-def robot(tmp_path) -> Path:
-    policy_models.constant(tmp_path / "policy.onnx", (0.5, 0.5), size=96)
-    return tmp_path
-
-
-def write_config(robot: Path, source: str, fps: float = 30) -> Path:
-    config = robot / "robot.toml"
-    config.write_text(f'[camera]\nsource = "{source}"\nfps = {fps}\nstart_timeout = 5\n'
-                      "[motors]\ni2c_retries = 1\n")
-    return config
-
-
-def check(robot: Path, config: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(robot / "run"))
-    return subprocess.run(
-        [sys.executable, "-m", "jetbot_rt.cli", "check", "--config", str(config),
-         EMULATOR_FLAG, str(robot / "chip.json"),
-         "--policy", str(robot / "policy.onnx"), "--frames", "10", *args],
-        capture_output=True, text=True, timeout=60, env=env,
-    )
-
-
-def rows(output: str) -> dict[str, str]:
-    return {line.split()[0]: line for line in output.splitlines() if line.strip()}
 
 
 def test_all_rows_pass_and_the_motors_never_move(robot) -> None:

@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 from runner import RuntimeProcess
 
-from jetbot_rt.loop import TickResult
-from jetbot_rt.policy import bundled_policy_path
-from jetbot_rt.recorder import Recorder, writer_command
-from jetbot_rt.recording import Recording
+from jetbot_rt.recording.reader import Recording
+from jetbot_rt.recording.recorder import Recorder, writer_command
+from jetbot_rt.runtime.loop import TickResult
+from jetbot_rt.runtime.policy import bundled_policy_path
 
-PLANTED_MODULES = ("jetbot_rt/__init__.py", "jetbot_rt/record_writer.py", "json.py", "mmap.py",
-                   "signal.py", "errno.py", "pathlib.py", "typing.py", "cv2.py",
+PLANTED_MODULES = ("jetbot_rt/__init__.py", "jetbot_rt/recording/writer_process.py", "json.py",
+                   "mmap.py", "signal.py", "errno.py", "pathlib.py", "typing.py", "cv2.py",
                    "numpy/__init__.py")
 """What the writer imports (and the package itself): each would shadow the real one if the
 working directory were on ``sys.path``."""

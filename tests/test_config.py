@@ -2,7 +2,7 @@ from pathlib import Path
 
 import pytest
 
-from jetbot_rt.config import Config, load_config
+from jetbot_rt.config.sections import Config, load_config
 from jetbot_rt.errors import UsageError
 
 

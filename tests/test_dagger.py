@@ -120,7 +120,7 @@ def test_train_algo_dagger_writes_the_run_directory(tmp_path, capsys):
     assert int(rows[1]["dataset"]) > int(rows[0]["dataset"]) >= 20
     state = torch.load(out / "checkpoint.pt", weights_only=True)
     assert (state["task"], state["algo"], state["update"]) == ("seek", "dagger", 2)
-    from jetbot_rt.config import Config
+    from jetbot_rt.config.sections import Config
     from jetbot_rt.train.evaluate import load_policy
 
     policy = load_policy(out / "policy.onnx", Config())

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from jetbot_rt.config import Config
+from jetbot_rt.config.sections import Config
 from jetbot_rt.train.dagger import labelling_spec
 from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.hyperparams import ModelConfig

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from jetbot_rt.config import from_dict
+from jetbot_rt.config.sections import from_dict
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.tasks import TASKS
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE, JetbotEnv, forward_reward

@@ -16,7 +16,7 @@ onnx = pytest.importorskip("onnx")
 
 from torch import nn  # noqa: E402
 
-from jetbot_rt.policy import OnnxPolicy  # noqa: E402
+from jetbot_rt.runtime.policy import OnnxPolicy  # noqa: E402
 from jetbot_rt.train import export_policy  # noqa: E402
 from jetbot_rt.train.export import ExportError  # noqa: E402
 from jetbot_rt.train.hyperparams import OptionError  # noqa: E402

@@ -1,4 +1,4 @@
-"""Fault matrix (issue 9): config values that cannot run together (class 7), threads that die
+"""Fault matrix: config values that cannot run together (class 7), threads that die
 (class 7), telemetry that must be strict JSON (class 8), and the first frame's NaN.
 
 Refusals go through the real CLI in a subprocess with the real backend on the emulated
@@ -19,12 +19,12 @@ from pathlib import Path
 import dying_backend
 import policy_models
 import pytest
+from fault_helpers import needs_gst
 from runner import processes_with, run_cli
-from test_fault_matrix import needs_gst
 
 from jetbot_rt.cli import main
 from jetbot_rt.hal import registry
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
 
 
 def strict_loads(line: str) -> dict:
@@ -203,7 +203,7 @@ def test_a_non_finite_answer_to_the_first_frame_is_bad_input(tmp_path: Path, mod
     assert not processes_with(mark)
 
 
-# ---- messages that used to mislead ---------------------------------------------------------
+# ---- messages that must not mislead ---------------------------------------------------------
 
 
 @pytest.mark.parametrize("name", [b"p\xe9.onnx", b"\xff\xfe-policy.onnx"])

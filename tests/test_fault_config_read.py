@@ -1,4 +1,4 @@
-"""Fault matrix, configs that cannot be read (issue 9, class 1): every command reads its
+"""Fault matrix, configs that cannot be read (class 1): every command reads its
 config in bounded time and memory; each failure is one line on stderr, exit 2, no traceback,
 no hang. ``jetbot-rt stop`` (systemd's ExecStopPost) writes the hardware stop all the same,
 on the default bus and address, before it reports.
@@ -16,8 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from fault_helpers import record_figures
 from runner import JETBOT_RT, on_emulator, wait_for
-from test_fault_matrix import record_figures
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive

@@ -1,4 +1,4 @@
-"""Fault matrix, files the runtime could destroy or misread (issue 9, class 6): a telemetry
+"""Fault matrix, files the runtime could destroy or misread (class 6): a telemetry
 path that is the policy or the config is refused (exit 2) before anything is opened; a start,
 even one refused with exit 2, never truncates the previous run's telemetry (a refused start
 appends its ``end`` record; a run that starts moves the previous file to ``<path>.1``); an
@@ -18,7 +18,7 @@ import policy_models
 import pytest
 from runner import JETBOT_RT, on_emulator
 
-from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.runtime.policy import bundled_policy_path
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 MU = (1.0, -0.5)

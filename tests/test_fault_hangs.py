@@ -1,4 +1,4 @@
-"""Fault matrix, exit paths that hang (issue 9, class 5): telemetry to a FIFO whose reader
+"""Fault matrix, exit paths that hang (class 5): telemetry to a FIFO whose reader
 stalls or is absent, a stop request or signal during warm-up, idle clients on the control
 socket. Each ends with the board all off within the stated bound, the documented exit code,
 one line at most on stderr, no traceback and no camera child left (docs/SAFETY.md).
@@ -16,8 +16,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import RuntimeProcess, processes_with, wait_for
-from test_fault_matrix import (
+from fault_helpers import (
     MU,
     assert_no_gst_left,
     live_camera,
@@ -26,8 +25,9 @@ from test_fault_matrix import (
     record_figures,
     timeline_camera,
 )
+from runner import RuntimeProcess, processes_with, wait_for
 
-from jetbot_rt.stop_socket import request_stop
+from jetbot_rt.service.stop_socket import request_stop
 
 pytestmark = needs_gst
 

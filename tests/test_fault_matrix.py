@@ -1,4 +1,4 @@
-"""The fault-injection matrix (issue 6; docs/SAFETY.md is its written form).
+"""The fault-injection matrix (docs/SAFETY.md is its written form).
 
 Every fault is injected while the robot drives: ``jetbot-rt run`` in a subprocess, on the sim
 backend and on the real backend (a real GStreamer camera, the register-level PCA9685 emulator
@@ -12,7 +12,6 @@ figures docs/SAFETY.md quotes.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import signal
@@ -24,38 +23,28 @@ from pathlib import Path
 
 import policy_models
 import pytest
+from fault_helpers import (
+    MU,
+    assert_no_gst_left,
+    live_camera,
+    needs_gst,
+    real_config,
+    record_figures,
+    timeline_camera,
+)
 from runner import Result, RuntimeProcess, assert_fixed_rate, processes_with, wait_for
 
-from jetbot_rt.config import SIM_WATCHDOG_MIN_S
-from jetbot_rt.safety import STOP_RETRY_S
+from jetbot_rt.config.sections import SIM_WATCHDOG_MIN_S
+from jetbot_rt.runtime.safety import STOP_RETRY_S
 
 PERIOD = 1 / 30
 WATCHDOG = 3 * PERIOD  # the default [loop] watchdog_timeout on the robot (the sim's: 1 s)
 WATCHDOG_DEFAULT = {"real": WATCHDOG, "sim": SIM_WATCHDOG_MIN_S}
 MAX_FRAME_AGE = 0.15  # the default [loop] max_frame_age
-MU = (1.0, -0.5)  # max_speed 0.1: left +0.1, right -0.05
-FPS_CAPS = "video/x-raw,width=320,height=240,framerate=30/1"
 
-needs_gst = pytest.mark.skipif(shutil.which("gst-launch-1.0") is None,
-                               reason="needs gst-launch-1.0")
 
 
 # ---- cameras and configs -----------------------------------------------------------------
-
-
-def live_camera(mark: str) -> str:
-    return f"videotestsrc name={mark} is-live=true"
-
-
-def timeline_camera(mark: str, normal: int, dark: int | None, then_normal: bool = False) -> str:
-    """``normal`` frames of a test pattern, then ``dark`` black frames (None: forever), then
-    (``then_normal``) the pattern again, all at 30 frames per second of wall time."""
-    dark_frames = "" if dark is None else f" num-buffers={dark}"
-    parts = [f"videotestsrc name={mark} num-buffers={normal} ! {FPS_CAPS} ! c.",
-             f"videotestsrc pattern=black{dark_frames} ! {FPS_CAPS} ! c."]
-    if then_normal:
-        parts.append(f"videotestsrc ! {FPS_CAPS} ! c.")
-    return " ".join(parts) + " concat name=c ! identity sync=true"
 
 
 STARTUP_S = 1.0
@@ -74,11 +63,6 @@ def dark_after(seconds: float, until: float = 1000.0, then_normal: bool = False)
         return timeline_camera(mark, round((seconds + STARTUP_S) * 30), dark, then_normal)
 
     return sim, real
-
-
-def real_config(source: str, motors: str = "i2c_retries = 3") -> str:
-    return (f'[camera]\nsource = "gst:{source}"\nstart_timeout = 10\n'
-            f"[motors]\n{motors}\n")
 
 
 # ---- the cases ---------------------------------------------------------------------------
@@ -184,7 +168,7 @@ def slow_when_dark_policy(path: Path) -> Path:
     inference on a black frame (a fixed count would be faster than a period on an idle PC)."""
     import numpy as np
 
-    from jetbot_rt.policy import OnnxPolicy
+    from jetbot_rt.runtime.policy import OnnxPolicy
 
     probe = OnnxPolicy.load(policy_models.slow_when_dark(path, 1000, MU))
     black = np.zeros((224, 224, 3), np.uint8)
@@ -331,18 +315,6 @@ def matrix():
         for backend in case.backends:
             marks = [needs_gst] if backend == "real" else []
             yield pytest.param(case, backend, id=f"{case.name}-{backend}", marks=marks)
-
-
-def record_figures(name: str, **figures: object) -> None:
-    path = os.environ.get("JETBOT_RT_FAULT_FIGURES")
-    if path:
-        with open(path, "a") as out:
-            out.write(json.dumps({"case": name, **figures}) + "\n")
-
-
-def assert_no_gst_left(mark: str) -> None:
-    gone = wait_for(lambda: not processes_with(mark), 3.0, interval=0.05)
-    assert gone is not None, f"gst-launch left behind: {processes_with(mark)}"
 
 
 # ---- the matrix --------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Fault matrix, who drives the board (issue 9, classes 2 and 3; docs/SAFETY.md, "What a stop
+"""Fault matrix, who drives the board (classes 2 and 3; docs/SAFETY.md, "What a stop
 guarantees").
 
 - ``jetbot-rt stop`` defeats a runtime it cannot talk to (another runtime directory, no
@@ -25,8 +25,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import JETBOT_RT, RuntimeProcess, on_emulator, processes_with, wait_for
-from test_fault_matrix import (
+from fault_helpers import (
     MU,
     assert_no_gst_left,
     live_camera,
@@ -34,6 +33,7 @@ from test_fault_matrix import (
     real_config,
     record_figures,
 )
+from runner import JETBOT_RT, RuntimeProcess, on_emulator, processes_with, wait_for
 
 OFF_AFTER_STOP_S = 10.0
 """Bound asserted on: ``jetbot-rt stop`` started -> every output of the board off (an
@@ -216,8 +216,8 @@ def test_execstoppost_with_an_unreadable_config_finds_the_board_the_runtime_reco
     """The runtime drives the board its config names (bus 4, 0x41) and is killed (SIGKILL:
     nothing of its own runs); then its config is replaced by one that cannot be read. The
     ExecStopPost ``stop``, given only that config (no ``--board-emulator``), turns off the
-    board the runtime recorded when it took it (issue 25: it fell back to bus 1 at 0x60 and
-    reported a false failure)."""
+    board the runtime recorded when it took it (not the default bus 1 at 0x60, which would
+    report a false failure)."""
     mark = f"fm{uuid.uuid4().hex[:12]}"
     policy = policy_models.constant(tmp_path / "policy.onnx", MU)
     rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(

@@ -1,4 +1,4 @@
-"""Fault matrix, signals (issue 9, class 4): every catchable signal whose default action ends
+"""Fault matrix, signals (class 4): every catchable signal whose default action ends
 or stops the process ends a run in the safe stop first; a signal during start-up ends it in
 order (exit 0, one line, no traceback); Ctrl-Z zeroes the motors before the process stops
 and ends the run on SIGCONT; ``check --spin`` never leaves a wheel pulsing.
@@ -19,8 +19,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
-from runner import RuntimeProcess, processes_with, wait_for
-from test_fault_matrix import (
+from fault_helpers import (
     MU,
     assert_no_gst_left,
     live_camera,
@@ -28,8 +27,9 @@ from test_fault_matrix import (
     real_config,
     record_figures,
 )
+from runner import RuntimeProcess, processes_with, wait_for
 
-from jetbot_rt import signals
+from jetbot_rt.service import signals
 
 pytestmark = needs_gst
 
@@ -58,7 +58,7 @@ def start_driving(tmp_path: Path, mark: str, ticks: int = 10) -> RuntimeProcess:
     rt.wait_ticks(ticks)
     assert not rt.board_off(), "it was driving before the signal"
     # Every handled signal, not only the ones sent end to end below, has the driving
-    # runtime's handler (one handler for all: jetbot_rt.signals.install).
+    # runtime's handler (one handler for all: jetbot_rt.service.signals.install).
     missing = set(signals.HANDLED) - caught(rt.pid)
     assert not missing, sorted(signals.name(s) for s in missing)
     return rt
@@ -79,7 +79,7 @@ def assert_clean_exit(rt: RuntimeProcess, code: int, reason: str, mark: str) -> 
 
 TERMINATING = [
     # (signal, ticks driven before it): vary the moment as well as the signal. A fixed sample
-    # of jetbot_rt.signals.TERMINATING (one handler serves them all): Ctrl-\, a user signal,
+    # of jetbot_rt.service.signals.TERMINATING (one handler serves them all): Ctrl-\, a user signal,
     # a timer's, a real-time one. Every other one is checked caught by the driving runtime in
     # start_driving (SigCgt), and decided in test_every_signal_that_ends_or_stops_...
     # (SIGUSR2, SIGVTALRM, SIGPROF, SIGXCPU, SIGIO, SIGPWR and SIGRTMIN ran end to end here
@@ -124,7 +124,8 @@ def test_the_watchdog_signal_prints_every_stack_then_stops_as_a_fault(tmp_path: 
     assert result.returncode == 3, result.stdout + result.stderr
     assert "Traceback" not in result.stderr and "Fatal Python error" not in result.stderr
     assert "the stack of every thread" in result.stderr
-    assert "Thread jetbot-rt-loop 0x" in result.stderr and "jetbot_rt/loop.py" in result.stderr
+    assert "Thread jetbot-rt-loop 0x" in result.stderr
+    assert "jetbot_rt/runtime/loop.py" in result.stderr
     end = result.records[-1]
     assert end["event"] == "end" and end["reason"] == "SIGUSR2 received", end
     assert end["cmd"] == [0.0, 0.0] and rt.board_off()
@@ -206,7 +207,7 @@ def test_signal_during_start_up_ends_in_order(tmp_path: Path, sig: int, delay: f
 
 SWALLOWED = """
 import signal, sys, time, weakref
-from jetbot_rt import signals
+from jetbot_rt.service import signals
 signals.install(signals.raise_interrupted)
 class Thing: pass
 thing = Thing()
@@ -339,7 +340,7 @@ NOT_CAUGHT = {
 
 
 def test_every_signal_that_ends_or_stops_the_process_is_decided() -> None:
-    """A signal dropped from jetbot_rt.signals (or a new one) fails here: each is caught or
+    """A signal dropped from jetbot_rt.service.signals (or a new one) fails here: each is caught or
     left alone by a decision written in docs/SAFETY.md."""
     present = {n for n in SIGNAL_7_ENDING if hasattr(signal, n)}
     handled = {signals.name(s) for s in signals.HANDLED}

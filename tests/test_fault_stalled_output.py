@@ -19,8 +19,8 @@ from pathlib import Path
 
 import policy_models
 import pytest
+from fault_helpers import record_figures
 from runner import JETBOT_RT, RuntimeProcess, read_telemetry, read_telemetry_safe, wait_for
-from test_fault_matrix import record_figures
 
 LIVENESS_S = 60.0
 """How long a run may take to end once told to (only catches a hang; never a timing)."""
@@ -140,7 +140,7 @@ def test_bad_input_whose_one_line_nobody_reads_still_exits_2(tmp_path: Path) -> 
 def test_the_streams_are_given_back_when_the_command_is_done(tmp_path: Path) -> None:
     """In one process (as a test or an embedding program runs it): after ``main`` returns,
     ``sys.stdout`` and ``sys.stderr`` are the interpreter's own again, everything written."""
-    code = ("import sys\nfrom jetbot_rt import cli, console\n"
+    code = ("import sys\nfrom jetbot_rt import cli\nfrom jetbot_rt.service import console\n"
             "code = cli.main(['run', '--backend', 'sim', '--rate', '0'])\n"
             "assert sys.stdout is sys.__stdout__ and sys.stderr is sys.__stderr__\n"
             "assert not isinstance(sys.stdout, console.NonBlockingStream)\n"
@@ -153,7 +153,7 @@ def test_the_streams_are_given_back_when_the_command_is_done(tmp_path: Path) -> 
     assert line.startswith("jetbot-rt run: error: --rate: [loop] rate_hz must be")
 
 
-BUG = ("from jetbot_rt import console\n"
+BUG = ("from jetbot_rt.service import console\n"
        "with console.unblocked():\n"
        "    print('before')\n"
        "    raise RuntimeError('a bug')\n")

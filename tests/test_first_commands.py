@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 import pytest
-from test_check import check, robot, rows, write_config  # noqa: F401  (robot is a fixture)
+from check_helpers import check, rows, write_config
 
 from jetbot_rt import cli
 from jetbot_rt.train.cli import build_parser as train_parser
@@ -98,7 +98,7 @@ def test_sim_without_pybullet_names_the_extra(tmp_path) -> None:
     assert "driving" not in result.stdout
 
 
-def test_check_on_a_machine_without_argus_does_not_blame_the_daemon(robot) -> None:  # noqa: F811
+def test_check_on_a_machine_without_argus_does_not_blame_the_daemon(robot) -> None:
     if subprocess.run(["gst-inspect-1.0", "nvarguscamerasrc"],
                       capture_output=True).returncode == 0:
         pytest.skip("this machine has nvarguscamerasrc")
@@ -129,7 +129,7 @@ def test_gui_under_a_software_rendered_display_keeps_driving(tmp_path) -> None:
     assert ticks >= 2
 
 
-def test_spin_turns_each_wheel_forward_as_the_runtime_would(robot) -> None:  # noqa: F811
+def test_spin_turns_each_wheel_forward_as_the_runtime_would(robot) -> None:
     """docs/HARDWARE.md: check --spin shows which way each wheel turns; with [actions] sign
     it pulses the direction the runtime calls forward."""
     from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator

@@ -28,10 +28,10 @@ import pytest
 from recording_fixtures import jetbot_rt, make_recording
 
 from jetbot_rt.commands import replay, report
-from jetbot_rt.config import load_config
+from jetbot_rt.config.sections import load_config
 from jetbot_rt.errors import UsageError
-from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
-from jetbot_rt.recording import Recording
+from jetbot_rt.recording.reader import Recording
+from jetbot_rt.runtime.policy import OnnxPolicy, bundled_policy_path
 
 BUDGET_S = float(os.environ.get("JETBOT_RT_FUZZ_S", "2"))
 """Each fuzz loop runs its seeded cases until this much time has passed (at least a few);
@@ -259,7 +259,7 @@ def test_fuzzed_configs_load_or_are_refused_in_one_line(tmp_path):
         case += 1
         path = tmp_path / "c.toml"
         path.write_bytes(mutate_toml(rng, VALID_CONFIG))
-        # config.py quotes a bad value whole: one line, as long as the value (at most the
+        # the config reader quotes a bad value whole: one line, as long as the value (at most the
         # file's 256 KiB)
         outcomes[within_promise(f"config case {case}", lambda path=path: load_config(path),
                                 max_length=300_000)] += 1

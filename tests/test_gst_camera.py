@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from jetbot_rt.config import CameraConfig
+from jetbot_rt.config.sections import CameraConfig
 from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.gst_camera import GstCamera, full_pipeline, gst_error_line, source_pipeline
 
@@ -137,7 +137,7 @@ def test_stop_kills_the_child_and_is_idempotent() -> None:
 
 CHILD = """
 import sys
-from jetbot_rt.config import CameraConfig
+from jetbot_rt.config.sections import CameraConfig
 from jetbot_rt.hal.gst_camera import GstCamera
 cam = GstCamera(CameraConfig(source="gst:videotestsrc is-live=true"), (64, 48))
 cam.start()
@@ -183,7 +183,7 @@ def test_gst_error_line_prefers_the_error_over_debug_lines() -> None:
 
 QUIET_CHILD = """
 import sys
-from jetbot_rt.config import CameraConfig
+from jetbot_rt.config.sections import CameraConfig
 from jetbot_rt.hal.gst_camera import GstCamera
 # one frame a minute: after the first, the child writes nothing a broken pipe could end it on
 source = "gst:videotestsrc is-live=true ! video/x-raw,framerate=1/60"

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from jetbot_rt.histogram import Histogram
+from jetbot_rt.runtime.histogram import Histogram
 
 
 def test_percentiles_within_one_percent_of_numpy():

@@ -1,4 +1,4 @@
-"""Recordings are untrusted input (issue 25): replay and report read every file of one through
+"""Recordings are untrusted input: replay and report read every file of one through
 ``safe_file`` and validate every record once; whatever is wrong is one line on stderr and
 exit 2, never a traceback, a hang, memory or disk without end, or a write through a planted
 link. Each example the adversarial review found is here as a regression test, end to end
@@ -29,7 +29,7 @@ from recording_fixtures import (
 
 from jetbot_rt.commands import report
 from jetbot_rt.errors import UsageError
-from jetbot_rt.recording import LINE_BYTES, TICKS_BYTES, Recording
+from jetbot_rt.recording.reader import LINE_BYTES, TICKS_BYTES, Recording
 
 HANG_S = 60.0
 """A case that takes longer hangs: each is one interpreter start and a few ms of work."""
@@ -359,8 +359,8 @@ def test_a_link_planted_in_the_record_directory_is_never_written_through(tmp_pat
                                                                         name):
     """The record directory may have existed (empty) and be writable by someone else, who
     plants a link once it was found empty: every file of the recording is created new."""
-    from jetbot_rt import recorder as recorder_module
-    from jetbot_rt.recorder import Recorder
+    from jetbot_rt.recording import recorder as recorder_module
+    from jetbot_rt.recording.recorder import Recorder
 
     victim = tmp_path / "victim"
     victim.write_text("precious\n")

@@ -1,5 +1,5 @@
 """A second local user against ``jetbot-rt stop``, the control socket's directory and the
-emulator's state file (issue 25; docs/SAFETY.md, "Untrusted input and sure exits").
+emulator's state file (docs/SAFETY.md, "Untrusted input and sure exits").
 
 The stop puts the chip to sleep before it asks any process anything, asks every socket it
 trusts at once within ``ASK_TOTAL_S`` in all, and ignores (and names, in one line) whatever
@@ -25,6 +25,7 @@ from pathlib import Path
 
 import policy_models
 import pytest
+from fault_helpers import live_camera, needs_gst, real_config, record_figures
 from hostile_user import (
     as_user,
     command,
@@ -35,11 +36,10 @@ from hostile_user import (
     user_env,
 )
 from runner import read_telemetry_safe, wait_for
-from test_fault_matrix import live_camera, needs_gst, real_config, record_figures
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
-from jetbot_rt.stop_socket import ASK_TOTAL_S
+from jetbot_rt.service.stop_socket import ASK_TOTAL_S
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 HANG_S = 20.0
@@ -77,8 +77,8 @@ of them found the board already off and asleep."""
 
 STOP_MODULES = ("jetbot_rt.cli", "jetbot_rt.commands.stop", "jetbot_rt.testing.pca9685_emulator",
                 "smbus2", "socket")
-RUN_MODULES = (*STOP_MODULES, "jetbot_rt.commands.run", "jetbot_rt.hal.real", "jetbot_rt.policy",
-               "onnxruntime", "numpy")
+RUN_MODULES = (*STOP_MODULES, "jetbot_rt.commands.run", "jetbot_rt.hal.real",
+               "jetbot_rt.runtime.policy", "onnxruntime", "numpy")
 CLI = "import sys\nfrom jetbot_rt.cli import main\nsys.exit(main(sys.argv[1:]))\n"
 
 
@@ -233,7 +233,7 @@ def test_another_users_sockets_and_links_in_our_directory_are_not_asked(tmp_path
 def test_the_control_socket_answers_only_its_user_and_root(tmp_path: Path) -> None:
     """Even where the modes would let another user connect, the runtime's server reads the
     caller's uid (``SO_PEERCRED``) and does not stop for it."""
-    from jetbot_rt.stop_socket import ControlServer
+    from jetbot_rt.service.stop_socket import ControlServer
 
     hostile = unused_uid()
     run_dir = shared_dir(0)
@@ -342,15 +342,15 @@ def test_a_private_alternative_is_reused_and_a_link_is_never_followed() -> None:
     """The fallback a second time (another run) is the same private directory; H's link at
     the ``/tmp`` name, pointing at a directory of V's, is not followed either."""
     victim, hostile = unused_uid(), unused_uid()
-    code = ("from jetbot_rt.runtime_dir import private_dir\n"
+    code = ("from jetbot_rt.service.runtime_dir import private_dir\n"
             "print(private_dir())\n")
     with tmp_names(victim):
         target = shared_dir(victim)
         try:
             assert as_user(hostile, "import os, sys\nos.symlink(sys.argv[1], sys.argv[2])\n",
                            str(target), f"/tmp/jetbot-rt-{victim}").returncode == 0
-            first = as_user(victim, code, modules=("jetbot_rt.runtime_dir", "tempfile"))
-            again = as_user(victim, code, modules=("jetbot_rt.runtime_dir", "tempfile"))
+            first = as_user(victim, code, modules=("jetbot_rt.service.runtime_dir", "tempfile"))
+            again = as_user(victim, code, modules=("jetbot_rt.service.runtime_dir", "tempfile"))
             assert first.returncode == 0, first.stderr
             chosen = Path(first.stdout.strip())
             assert chosen.name.startswith(f"jetbot-rt-{victim}.") and chosen.parent == Path("/tmp")
@@ -383,7 +383,7 @@ t0 = time.monotonic()
 stop = subprocess.run([sys.executable, "-m", "jetbot_rt.cli", "stop", "--board-emulator",
                        "/tmp/chip"], capture_output=True, text=True, env=env, timeout=60)
 elapsed = time.monotonic() - t0
-from jetbot_rt.stop_socket import ControlServer
+from jetbot_rt.service.stop_socket import ControlServer
 server = ControlServer(lambda _reason: None)
 server.start()
 print("server", server.path, oct(os.stat(server.path.parent).st_mode & 0o7777))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from jetbot_rt.config import MotorsConfig
+from jetbot_rt.config.sections import MotorsConfig
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.hal.i2c import I2CBus, I2CFault, open_smbus
 from jetbot_rt.hal.pca9685 import LED0_ON_L, MODE1

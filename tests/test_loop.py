@@ -4,12 +4,12 @@ import time
 
 import numpy as np
 
-from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.errors import Fault
-from jetbot_rt.hal.null import NullCamera, NullDrive, PartsRobot
-from jetbot_rt.loop import ControlLoop, Safety, Schedule
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.testing.null_robot import NullCamera, NullDrive, PartsRobot
 
 
 class ScriptedPolicy:
@@ -33,7 +33,7 @@ def make_loop(policy, period=0.02, camera=None, timeout=None, telemetry=None):
     watchdog = Watchdog(latch, timeout) if timeout else None
     loop = ControlLoop(
         robot=PartsRobot(camera or NullCamera(), drive), policy=policy, actions=ActionPipeline(),
-        safety=Safety(latch, guarded, watchdog), schedule=Schedule(period, max_frame_age=0.1),
+        safety=StopChain(latch, guarded, watchdog), schedule=Schedule(period, max_frame_age=0.1),
         observers=[telemetry.observe] if telemetry is not None else [],
     )
     return loop, latch, drive, watchdog

@@ -12,14 +12,14 @@ import json
 import numpy as np
 import pytest
 
-from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.hal.base import Camera, Frame
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
-from jetbot_rt.hal.null import PartsRobot
-from jetbot_rt.loop import ControlLoop, Safety, Schedule
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch
+from jetbot_rt.testing.null_robot import PartsRobot
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 PERIOD = 0.25  # a power of two: every sum of periods below is exact in binary floating point
@@ -132,7 +132,8 @@ def run_loop(durations: dict[int, float], duration: float, late: dict[int, float
         telemetry.t0 = 0.0  # records' t on the simulated clock
     loop = ControlLoop(
         robot=robot, policy=policy, actions=ActionPipeline(),
-        safety=Safety(latch, drive), schedule=Schedule(PERIOD, max_frame_age=1000.0, clock=clock),
+        safety=StopChain(latch, drive),
+        schedule=Schedule(PERIOD, max_frame_age=1000.0, clock=clock),
         observers=[telemetry.observe] if telemetry is not None else [],
     )
     loop.run(duration=duration)
@@ -225,7 +226,7 @@ class TestDurationAndRecords:
         assert [r["infer_ms"] for r in records] == [0.0, 31.25, 0.0, 0.0]
         assert [r["write_ms"] for r in records] == [15.625] * 4
         assert [r["advance_ms"] for r in records] == [62.5] * 4
-        # the tick is read -> update -> write; the sim step is timed apart (issue 12)
+        # the tick is read -> update -> write; the sim step is timed apart
         assert [r["tick_ms"] for r in records] == [15.625, 46.875, 15.625, 15.625]
         assert [r["overruns"] for r in records] == [0] * 4
         assert loop.stats.tick_ms.max == 46.875
@@ -242,7 +243,8 @@ class TestStaleFrameReason:
         loop = ControlLoop(
             robot=PartsRobot(FreshCamera(clock, age=0.375), timed_drive),
             policy=TimedPolicy(clock, {}), actions=ActionPipeline(),
-            safety=Safety(latch, drive), schedule=Schedule(PERIOD, max_frame_age=0.25, clock=clock),
+            safety=StopChain(latch, drive),
+            schedule=Schedule(PERIOD, max_frame_age=0.25, clock=clock),
         )
         loop.run(duration=4 * PERIOD)
         assert latch.fault

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from jetbot_rt.config import MotorsConfig
+from jetbot_rt.config.sections import MotorsConfig
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
 from jetbot_rt.hal.motors import (
@@ -230,7 +230,7 @@ JETBOT_FORWARD_IN1 = (10, 11)
 def test_older_waveshare_revision_as_documented_matches_jetbots_writes(chip) -> None:
     """docs/HARDWARE.md: layout = "adafruit_motorhat", sign = [1, -1] drives outputs 8-13
     in jetbot's directions (MotorKit's motor2 turns the other way from the old library's)."""
-    from jetbot_rt.actions import ActionPipeline
+    from jetbot_rt.runtime.actions import ActionPipeline
 
     actions = ActionPipeline(max_speed=0.5, sign=(1, -1))
     drive = motorhat(chip)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from jetbot_rt.systemd_notify import Notifier
+from jetbot_rt.service.systemd_notify import Notifier
 
 
 class Listener:

@@ -170,7 +170,7 @@ def test_state_file_survives_sigkill_of_a_writer(tmp_path) -> None:
     assert chip.transactions > 10
 
 
-# ---- the state file: updated in place, never rewritten (issue 25) -------------------------
+# ---- the state file: updated in place, never rewritten ------------------------------------
 
 
 def test_a_transaction_updates_the_state_file_in_place(tmp_path) -> None:
@@ -204,7 +204,7 @@ def test_a_state_file_that_is_not_one_is_refused(tmp_path, kind: str) -> None:
         state.mkdir()
     elif kind == "short":
         state.write_bytes(b"PCA9685E")
-    elif kind == "json":  # the format before issue 25
+    elif kind == "json":  # the older JSON format, still read
         state.write_text('{"address": 96, "registers": []}')
     else:
         PCA9685Emulator(ADDR, state_file=state)

@@ -4,9 +4,9 @@ import policy_models
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from jetbot_rt.config import PolicyConfig
+from jetbot_rt.config.sections import PolicyConfig
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.policy import MAX_INPUT_SIDE, OnnxPolicy, provider_options
+from jetbot_rt.runtime.policy import MAX_INPUT_SIDE, OnnxPolicy, provider_options
 
 RED = np.zeros((224, 224, 3), np.uint8)
 RED[..., 0] = 255
@@ -167,7 +167,7 @@ class TestWhatTheSessionIsGiven:
     def test_bundled_policy_and_cache_paths(self, monkeypatch, tmp_path):
         from pathlib import Path
 
-        from jetbot_rt.policy import bundled_policy_path, tensorrt_cache_dir
+        from jetbot_rt.runtime.policy import bundled_policy_path, tensorrt_cache_dir
 
         bundled = bundled_policy_path()
         assert bundled.name == "forward.onnx" and bundled.parent.name == "policies"
@@ -375,7 +375,7 @@ class TestUntrustedModels:
     def test_a_file_larger_than_protobufs_limit_is_refused_before_it_is_read(self, tmp_path):
         import os
 
-        from jetbot_rt.policy import MAX_MODEL_BYTES
+        from jetbot_rt.runtime.policy import MAX_MODEL_BYTES
 
         assert MAX_MODEL_BYTES == 2 * 1024**3
         path = tmp_path / "huge.onnx"

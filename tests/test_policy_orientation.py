@@ -16,7 +16,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from jetbot_rt.policy import OnnxPolicy
+from jetbot_rt.runtime.policy import OnnxPolicy
 
 PICKS = [(1, 6, 0), (5, 2, 2)]
 """(row, column, channel) of the two elements the probe returns as ``mu``."""
@@ -124,7 +124,7 @@ class TestLayoutPrecedence:
     that could be either layout."""
 
     def test_config_then_metadata_then_guess(self, tmp_path: Path) -> None:
-        from jetbot_rt.config import PolicyConfig
+        from jetbot_rt.config.sections import PolicyConfig
 
         ambiguous = element_probe(tmp_path / "p.onnx", "NCHW", 8, 3)  # [1, 3, 8, 3]
         assert OnnxPolicy.load(ambiguous).spec.layout == "NCHW"  # as its metadata states
@@ -160,7 +160,7 @@ class TestColourChannelsCounted:
     @pytest.mark.parametrize("channels", [1, 2, 4])
     def test_an_image_input_without_three_channels_is_refused(self, tmp_path: Path,
                                                                channels: int) -> None:
-        from jetbot_rt.config import PolicyConfig
+        from jetbot_rt.config.sections import PolicyConfig
         from jetbot_rt.errors import UsageError
 
         model = mean_slice_model(tmp_path / "m.onnx", [1, 8, 8, channels], [1, 2])

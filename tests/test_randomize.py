@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jetbot_rt.config import from_dict
+from jetbot_rt.config.sections import from_dict
 from jetbot_rt.errors import UsageError
 
 pytest.importorskip("pybullet")
@@ -106,7 +106,7 @@ def test_max_speed_must_lie_above_the_deadband_it_trains_with():
 def test_the_default_config_file_shows_the_defaults():
     from importlib import resources
 
-    from jetbot_rt.config import Config, load_config
+    from jetbot_rt.config.sections import Config, load_config
 
     shipped = load_config(str(resources.files("jetbot_rt") / "data" / "default-config.toml"))
     assert shipped.sim == Config().sim and shipped.randomize == Config().randomize

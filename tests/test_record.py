@@ -16,16 +16,16 @@ import policy_models
 import pytest
 from runner import JETBOT_RT, RuntimeProcess, run_cli
 
-from jetbot_rt.loop import TickResult
-from jetbot_rt.policy import OnnxPolicy, bundled_policy_path
-from jetbot_rt.recorder import Recorder, sha256_of
-from jetbot_rt.recording import Recording
+from jetbot_rt.recording.reader import Recording
+from jetbot_rt.recording.recorder import Recorder, sha256_of
+from jetbot_rt.runtime.loop import TickResult
+from jetbot_rt.runtime.policy import OnnxPolicy, bundled_policy_path
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "RECORDING.md"
 # What these tests check does not depend on the loop's timing: on a loaded 2-core machine a sim
 # tick can take 100 ms, which the default watchdog (3 periods) would end as a fault.
 PATIENT = "[loop]\nwatchdog_timeout = 2.0\nmax_frame_age = 0.5\n"
-# The recorder's writer runs at nice 19 (recorder.py): beside another test's busy process
+# The recorder's writer runs at nice 19 (recording/recorder.py): beside another test's busy process
 # (pytest-xdist, two workers on two cores) it gets ~1 % of a core and misses its 2 s
 # close (seen: "the disk did not take the last 0 frames within 2 s"). Nothing runs beside
 # these tests, as nothing does in a serial run.

@@ -10,7 +10,7 @@ import policy_models
 import pytest
 from runner import Result, read_telemetry, run_cli
 
-from jetbot_rt.config import SIM_WATCHDOG_MIN_S
+from jetbot_rt.config.sections import SIM_WATCHDOG_MIN_S
 
 PERIOD = 1 / 30
 PATIENT = "[loop]\nwatchdog_timeout = 1.0\n"
@@ -187,8 +187,8 @@ def test_bad_input_is_one_line_exit_2_and_motors_never_move(tmp_path, capfd, mon
 
 def test_core_imports_stay_light():
     code = (
-        "import sys, jetbot_rt, jetbot_rt.policy, jetbot_rt.commands.run, jetbot_rt.cli, "
-        "jetbot_rt.hal, jetbot_rt.loop, jetbot_rt.safety\n"
+        "import sys, jetbot_rt, jetbot_rt.runtime.policy, jetbot_rt.commands.run, jetbot_rt.cli, "
+        "jetbot_rt.hal, jetbot_rt.runtime.loop, jetbot_rt.runtime.safety\n"
         "heavy = [m for m in ('torch', 'pybullet', 'gymnasium') if m in sys.modules]\n"
         "print(heavy)\nsys.exit(1 if heavy else 0)\n"
     )

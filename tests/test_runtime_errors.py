@@ -31,3 +31,21 @@ def test_control_socket_that_cannot_be_created_is_a_usage_error(tmp_path, monkey
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "cannot create the control socket" in lines[0]
+
+
+def test_every_way_out_releases_the_robot_between_two_zero_writes_the_last_write_zero(
+        tmp_path, monkeypatch):
+    """The phases' exits run in reverse: the drive phase's watchdog, the connect phase's zero
+    and the robot's release; then the stop phase's own zero is the last write."""
+    import logging_backend
+
+    monkeypatch.setitem(registry.BACKEND_MODULES, "logging", "logging_backend")
+    policy = policy_models.constant(tmp_path / "p.onnx", (1.0, -0.5))
+    code = main(["run", "--backend", "logging", "--policy", str(policy), "--duration", "0.3"])
+    assert code == 0
+    log = logging_backend.LOG
+    assert "write" in log, "it drove"
+    after_driving = log[len(log) - log[::-1].index("write"):]
+    # the latch's own zero write, then the exits: zero, the robot released, zero last
+    assert after_driving[-3:] == ["camera stop", "disconnect", "zero"]
+    assert after_driving[:-3] and set(after_driving[:-3]) == {"zero"}

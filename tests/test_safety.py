@@ -1,8 +1,8 @@
 import threading
 import time
 
-from jetbot_rt.hal.null import NullDrive
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.testing.null_robot import NullDrive
 
 
 def test_latch_first_reason_wins_and_zeroes_the_drive():

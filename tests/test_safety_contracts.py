@@ -14,7 +14,7 @@ import pytest
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 LIVENESS_S = 10.0

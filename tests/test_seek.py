@@ -138,7 +138,7 @@ def test_pushing_the_goal_away_fails_and_ends_the_episode(ideal):
 
 
 def test_the_sim_backend_builds_the_policy_tasks_scene_from_the_seed():
-    from jetbot_rt.config import from_dict
+    from jetbot_rt.config.sections import from_dict
     from jetbot_rt.hal.registry import BackendOptions
     from jetbot_rt.sim.backend import build_backend
 
@@ -156,7 +156,7 @@ def test_the_sim_backend_builds_the_policy_tasks_scene_from_the_seed():
 def test_ablations_open_the_seams_they_name(tmp_path):
     import policy_models
 
-    from jetbot_rt.config import Config
+    from jetbot_rt.config.sections import Config
     from jetbot_rt.train.evaluate import BLANK_LEVEL, BlankPolicy, ConstantPolicy, load_policy
 
     path = policy_models.constant(tmp_path / "p.onnx", (0.2, 0.4), size=56,
@@ -194,9 +194,9 @@ def test_driving_blind_straight_ahead_fails_seek(tmp_path):
 
 def test_the_bundled_seek_policy_sees():
     """On the evaluation's first episodes (seeds 10000.., randomization on): the bundled seek
-    policy succeeds; fed a blank grey image it fails; fed BGR frames (the seed's camera seam)
-    it loses at least half. The full 100-episode figures are in docs/TRAINING.md."""
-    from jetbot_rt.policy import bundled_policy_path
+    policy succeeds; fed a blank grey image it fails; fed BGR frames (a camera seam with swapped
+    channels) it loses at least half. The full 100-episode figures are in docs/TRAINING.md."""
+    from jetbot_rt.runtime.policy import bundled_policy_path
     from jetbot_rt.train.evaluate import evaluate
 
     assert bundled_policy_path("seek").is_file()
@@ -208,8 +208,8 @@ def test_the_bundled_seek_policy_sees():
 
 
 def test_run_without_policy_drives_the_bundled_policy_of_the_sim_task():
-    from jetbot_rt.config import Config, from_dict
-    from jetbot_rt.policy import bundled_task, resolve_policy_path
+    from jetbot_rt.config.sections import Config, from_dict
+    from jetbot_rt.runtime.policy import bundled_task, resolve_policy_path
 
     assert bundled_task(Config()) == "forward"
     seek = from_dict({"sim": {"task": "seek"}})

@@ -15,7 +15,7 @@ import pytest
 
 from jetbot_rt.cli import main
 from jetbot_rt.commands import install_service as service
-from jetbot_rt.config import Config, load_config
+from jetbot_rt.config.sections import Config, load_config
 from jetbot_rt.errors import UsageError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -204,7 +204,7 @@ def test_default_config_mentions_every_key():
         assert declared <= keys_by_section.get(section.name, set()), section.name
 
 
-# ---- hostile values and hostile trees (issue 25) -------------------------------------------
+# ---- hostile values and hostile trees ------------------------------------------------------
 
 
 def installed_files(root: Path) -> list[Path]:
@@ -237,7 +237,7 @@ def test_a_value_systemd_would_read_otherwise_is_refused_in_one_line(
 
 def test_a_newline_in_the_executables_own_path_writes_no_unit(tmp_path: Path) -> None:
     """The executable's path is a value like any other: a venv in a directory whose name holds
-    a newline would otherwise inject unit lines (issue 22's escaping)."""
+    a newline would otherwise inject unit lines (hence the escaping)."""
     odd = tmp_path / "venv\nExecStartPre=/bin/touch pwned" / "bin"
     odd.mkdir(parents=True)
     script = odd / "jetbot-rt"
@@ -340,7 +340,7 @@ def test_placeholders_are_filled_in_the_settings_and_nowhere_else(tmp_path: Path
     assert "@" not in settings
 
 
-# ---- what the unit decides (issue 25) ------------------------------------------------------
+# ---- what the unit decides -----------------------------------------------------------------
 
 
 def test_an_orderly_end_or_a_fault_is_never_restarted_whatever_exec_stop_post_says():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jetbot_rt.config import Config
+from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import Fault, UsageError
 from jetbot_rt.hal import BackendOptions, make_backend
 

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import policy_models
 import pytest
+from fault_helpers import record_figures
 from runner import RuntimeProcess
-from test_fault_matrix import record_figures
 
-from jetbot_rt.config import SIM_WATCHDOG_MIN_S, Config, LoopConfig
+from jetbot_rt.config.sections import SIM_WATCHDOG_MIN_S, Config, LoopConfig
 from jetbot_rt.hal import BackendOptions, make_backend
 
 TICK = 1 / 30

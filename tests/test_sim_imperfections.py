@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from jetbot_rt.config import SimConfig
+from jetbot_rt.sim.config import SimConfig
 
 pytest.importorskip("pybullet")
 

@@ -16,7 +16,7 @@ import pytest
 from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import BoardAsleep, WaveshareDrive
-from jetbot_rt.stop_socket import ControlServer, default_socket_path, request_stop
+from jetbot_rt.service.stop_socket import ControlServer, default_socket_path, request_stop
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 # ---- control channel ---------------------------------------------------------------------
@@ -167,7 +167,7 @@ def test_stop_loads_no_camera_policy_or_torch(tmp_path) -> None:
         "from jetbot_rt.cli import main\n"
         "assert main(['stop', '--board-emulator', sys.argv[1]]) == 0\n"
         "heavy = {'torch', 'onnxruntime', 'cv2', 'pybullet', 'jetbot_rt.hal.gst_camera',\n"
-        "         'jetbot_rt.policy', 'adafruit_motorkit'}\n"
+        "         'jetbot_rt.runtime.policy', 'adafruit_motorkit'}\n"
         "print(sorted(heavy & set(sys.modules)))\n"
     )
     env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run"))

@@ -22,8 +22,8 @@ import policy_models
 import pytest
 
 from jetbot_rt.commands import run as runtime_module
-from jetbot_rt.stop_socket import request_stop
-from jetbot_rt.telemetry import Telemetry
+from jetbot_rt.recording.telemetry import Telemetry
+from jetbot_rt.service.stop_socket import request_stop
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 
 pytestmark = pytest.mark.skipif(shutil.which("gst-launch-1.0") is None,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from runner import run_cli
 
-from jetbot_rt.config import Config, from_dict
-from jetbot_rt.policy import bundled_policy_path
+from jetbot_rt.config.sections import Config, from_dict
+from jetbot_rt.runtime.policy import bundled_policy_path
 from jetbot_rt.train.env import JetbotEnv
 from jetbot_rt.train.evaluate import load_policy
 

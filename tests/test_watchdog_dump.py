@@ -30,11 +30,11 @@ from typing import Any
 
 import policy_models
 import pytest
+from fault_helpers import MU, assert_no_gst_left, live_camera, real_config
 from runner import RuntimeProcess, read_telemetry_safe, wait_for
-from test_fault_matrix import MU, assert_no_gst_left, live_camera, real_config
 
-from jetbot_rt import signals
 from jetbot_rt.commands import install_service
+from jetbot_rt.service import signals
 
 TESTS = Path(__file__).resolve().parent
 F_SETPIPE_SZ = 1031
@@ -138,7 +138,7 @@ def no_core_dump() -> None:
 
 CHURNING = """
 import random, signal, sys, threading, time
-from jetbot_rt import signals
+from jetbot_rt.service import signals
 sys.setrecursionlimit(5000)
 random.seed(int(sys.argv[2]))
 
@@ -288,6 +288,7 @@ def test_a_runtime_wedged_holding_the_gil_prints_every_stack_at_the_final_signal
     assert process.returncode == -signal.SIGABRT, f"exit {process.returncode}\n{err[-3000:]}"
     assert "Fatal Python error: Aborted" in err
     assert "wedge_backend.py" in err and "in wedge_holding_the_gil" in err, err[-3000:]
-    assert "jetbot_rt/loop.py" in err and "jetbot_rt/safety.py" in err, "every thread"
+    assert "jetbot_rt/runtime/loop.py" in err and "jetbot_rt/runtime/safety.py" in err, \
+        "every thread"
     assert not [r for r in read_telemetry_safe(telemetry) if r.get("event") == "end"], \
         "nothing of the runtime ran after the wedge (ExecStopPost's case)"

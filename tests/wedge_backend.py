@@ -13,7 +13,7 @@ import ctypes
 import signal
 import sys
 
-from jetbot_rt.hal.null import NullCamera, PartsRobot
+from jetbot_rt.testing.null_robot import NullCamera, PartsRobot
 
 GOOD_FRAMES = 10
 

@@ -14,11 +14,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from jetbot_rt import signals
-from jetbot_rt.config import Config, load_config, set_value
+from jetbot_rt.config.schema import set_value
+from jetbot_rt.config.sections import Config, load_config
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
 from jetbot_rt.hal.i2c import EMULATOR_FLAG, add_emulator_argument
+from jetbot_rt.service import signals
 
 SPIN_DUTY = 0.3
 SPIN_SECONDS = 0.5
@@ -191,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
     described: dict[str, Any] = {}
 
     def load_policy() -> str:
-        from jetbot_rt.policy import OnnxPolicy, resolve_policy_path
+        from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path
 
         path = resolve_policy_path(args.policy or config.policy.path)
         policy = OnnxPolicy.load(path, config.policy)

@@ -23,7 +23,7 @@ import sysconfig
 import unicodedata
 from pathlib import Path, PurePosixPath
 
-from jetbot_rt import safe_file
+from jetbot_rt.config import safe_file
 from jetbot_rt.errors import UsageError
 
 UNIT_NAME = "jetbot-rt.service"
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     unit_path = staged(root, UNIT_DIR / UNIT_NAME)
     config_path = staged(root, config)
     if config_path.exists() or config_path.is_symlink():
-        from jetbot_rt.config import load_config
+        from jetbot_rt.config.sections import load_config
 
         load_config(config_path)  # an existing config is kept: it must be one the service reads
     unit_action = "wrote"
@@ -216,7 +216,7 @@ def render_unit(executable: Path, user: str, config: PurePosixPath) -> str:
 
 def unit_value(what: str, value: str) -> str:
     """``value`` if systemd reads it back as the same text, else ``UsageError`` (one line):
-    a control character (a newline would start a new setting: issue 22's injection), a line
+    a control character (a newline would start a new setting: an injected line), a line
     separator, or bytes that are not UTF-8 (a unit file is UTF-8)."""
     for char in value:
         category = unicodedata.category(char)

@@ -16,12 +16,13 @@ from typing import Any
 
 import numpy as np
 
-from jetbot_rt.config import PolicyConfig, set_value
+from jetbot_rt.config.safe_file import shown
+from jetbot_rt.config.schema import set_value
+from jetbot_rt.config.sections import PolicyConfig
 from jetbot_rt.errors import EXIT_OK, UsageError
-from jetbot_rt.policy import OnnxPolicy
-from jetbot_rt.recorder import sha256_of
-from jetbot_rt.recording import Recording
-from jetbot_rt.safe_file import shown
+from jetbot_rt.recording.reader import Recording
+from jetbot_rt.recording.recorder import sha256_of
+from jetbot_rt.runtime.policy import OnnxPolicy
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

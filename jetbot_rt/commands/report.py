@@ -3,8 +3,8 @@ with mu, duties and the tick's state drawn on them, a marker at a safe stop) and
 (mu, duties, tick time, frame age, overruns and events on one time axis) beside the recording,
 and prints the summary. On a bare telemetry JSONL file it writes ``<name>.png`` only.
 
-The recording is untrusted (``recording.py`` validates it) and so is the directory it sits in:
-each output is written to a new file created without following links and renamed into place
+The recording is untrusted (``recording/reader.py`` validates it) and so is the directory it
+sits in: each output is written to a new file created without following links and renamed into place
 once complete (``safe_file.replaced_file``), so a ``run.png`` planted as a link to another file
 is replaced, not written through. The video is bounded by the ticks: a pause longer than
 ``MAX_GAP_S`` is shortened, and it stops at ``MAX_VIDEO_FRAMES``. An output that cannot be
@@ -27,10 +27,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from jetbot_rt import safe_file
+from jetbot_rt.config import safe_file
+from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import EXIT_OK, UsageError
-from jetbot_rt.recording import Recording
-from jetbot_rt.safe_file import shown
+from jetbot_rt.recording.reader import Recording
 
 DISPLAY_WIDTH = 448  # frames are enlarged by a whole factor to about this width (56 px by 8)
 PANEL = 120  # px of text and bars under the frame

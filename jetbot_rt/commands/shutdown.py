@@ -4,20 +4,20 @@ fixed order that leaves the motors at zero last, and reports the run as a ``Summ
 from __future__ import annotations
 
 import dataclasses
-import sys
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
-from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE, first_line
-from jetbot_rt.recorder import recording_line
+from jetbot_rt.errors import EXIT_OK, EXIT_SAFE_STOP, EXIT_USAGE
+from jetbot_rt.recording.recorder import recording_line
 
 if TYPE_CHECKING:
+    from jetbot_rt.commands.lifecycle import Lifecycle
     from jetbot_rt.hal import Robot
-    from jetbot_rt.loop import LoopStats
-    from jetbot_rt.recorder import Recorder
-    from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
-    from jetbot_rt.systemd_notify import Notifier
-    from jetbot_rt.telemetry import Telemetry
+    from jetbot_rt.recording.recorder import Recorder
+    from jetbot_rt.recording.telemetry import Telemetry
+    from jetbot_rt.runtime.loop import LoopStats
+    from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch
+    from jetbot_rt.service.systemd_notify import Notifier
 
 
 @dataclass(frozen=True)
@@ -104,38 +104,35 @@ class Summary:
 
 
 class Shutdown:
-    """The stop phase. Each start-up phase hands it what it brought up; ``finish`` releases it
-    all in a fixed order (watchdog, motors zero, closers, motors zero again: the last write of
-    the process is zero), then writes the ``end`` event and prints the summary."""
+    """The stop phase. What the start-up phases brought up is released by their own exits
+    (``Lifecycle.unwind``: watchdog, motors zero, robot, control socket); ``release`` then
+    writes zero once more, so the last write of the process is zero. ``finish`` reports the
+    run: the ``end`` event and the summary. The start-up phases register what the stop needs
+    through the verbs below."""
 
-    def __init__(self, latch: SafeStopLatch, stats: LoopStats) -> None:
+    def __init__(self, latch: SafeStopLatch, stats: LoopStats, lifecycle: Lifecycle) -> None:
         self.latch = latch
         self.stats = stats
-        self._watchdogs: list[Watchdog] = []
+        self.lifecycle = lifecycle
         self._drives: list[GuardedDrive] = []
-        self._closers: list[Callable[[], None]] = []
         self._robots: list[Robot] = []
         self._recorders: list[Recorder] = []
         self._notifiers: list[Notifier] = []
 
-    def notifier(self, notifier: Notifier) -> None:
-        self._notifiers.append(notifier)
-
-    def closes(self, closer: Callable[[], None]) -> None:
-        self._closers.append(closer)
-
-    def recorder(self, recorder: Recorder) -> None:
-        self._recorders.append(recorder)
-
-    def robot(self, robot: Robot) -> None:
-        self._robots.append(robot)
-        self._closers.append(robot.disconnect)
-
-    def drive(self, drive: GuardedDrive) -> None:
+    def zero_last(self, drive: GuardedDrive) -> None:
+        """Write zero to ``drive`` after everything else is released, and report its stops."""
         self._drives.append(drive)
 
-    def watchdog(self, watchdog: Watchdog) -> None:
-        self._watchdogs.append(watchdog)
+    def count_from(self, robot: Robot) -> None:
+        """Put the robot's counters (``stats()``) in the summary."""
+        self._robots.append(robot)
+
+    def close_with_summary(self, recorder: Recorder) -> None:
+        self._recorders.append(recorder)
+
+    def announce_to(self, notifier: Notifier) -> None:
+        """Tell the service manager the run is stopping, and why."""
+        self._notifiers.append(notifier)
 
     def release_motors(self) -> None:
         """Motors to zero now (a suspend: the process stops next); bounded, never raises."""
@@ -143,18 +140,10 @@ class Shutdown:
             drive.stop()
 
     def release(self) -> None:
-        """Everything off and closed; never raises on a closer's failure (says it)."""
-        for watchdog in self._watchdogs:
-            watchdog.close()
-        for drive in self._drives:
-            drive.stop()
-        for closer in self._closers:
-            try:
-                closer()
-            except Exception as exc:  # cleanup must go on; say what failed
-                print(f"jetbot-rt: cleanup: {first_line(exc)}", file=sys.stderr)
-        for drive in self._drives:
-            drive.stop()  # the last write of the process is zero
+        """Every phase's exit, then zero: the last write of the process. Never raises on a
+        phase's failure (says it)."""
+        self.lifecycle.unwind()
+        self.release_motors()
 
     def finish(self, telemetry: Telemetry, rate_hz: float) -> Summary:
         """Release everything and report how the run ended."""

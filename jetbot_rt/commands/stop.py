@@ -34,14 +34,14 @@ import sys
 import time
 from collections.abc import Callable
 
-from jetbot_rt.config import MotorsConfig, load_config
+from jetbot_rt.config.sections import MotorsConfig, load_config
 from jetbot_rt.errors import EXIT_USAGE, UsageError, first_line
 from jetbot_rt.hal.i2c import I2CBus, I2CFault, add_emulator_argument, emulator_notice
 from jetbot_rt.hal.motors import read_mode1, stop_and_sleep
 from jetbot_rt.hal.ownership import bus_device, describe, owned, owner_pids
 from jetbot_rt.hal.pca9685 import MODE1_SLEEP
-from jetbot_rt.runtime_dir import read_board_record
-from jetbot_rt.stop_socket import ASK_TOTAL_S, request_stop
+from jetbot_rt.service.runtime_dir import read_board_record
+from jetbot_rt.service.stop_socket import ASK_TOTAL_S, request_stop
 
 __all__ = ["ASK_TOTAL_S", "CONFIRM_S", "add_arguments", "run"]
 

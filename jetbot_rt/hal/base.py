@@ -3,15 +3,32 @@
 from __future__ import annotations
 
 import abc
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from jetbot_rt.errors import Fault
+
 DEFAULT_FRAME_SIZE = (224, 224)
 """(width, height) of camera frames where no policy says otherwise (the null camera, a bare
-``JetbotWorld``, ``check`` without a policy): the rl_games layout's size, that of the first
-bundled policy before it was re-exported at 56x56. A run takes the size from its policy's ONNX
+``JetbotWorld``, ``check`` without a policy): the rl_games layout's size, which the
+JetBot's own examples use. A run takes the size from its policy's ONNX
 input; the trainer's size is ``jetbot_rt.train.env.POLICY_IMAGE_SIZE``."""
+
+
+class NonFinite(Fault, ValueError):
+    """A NaN or an infinity where a wheel command is due: a fault while driving (safe stop), a
+    ``ValueError`` to callers of the sim world's API."""
+
+
+def finite_pair(left: float, right: float, what: str = "duty ") -> tuple[float, float]:
+    """``(left, right)`` as floats; ``NonFinite`` naming ``what`` if either is NaN or infinite.
+    The one non-finite check: the action pipeline, the motor drivers and the sim world call it."""
+    left, right = float(left), float(right)
+    if not (math.isfinite(left) and math.isfinite(right)):
+        raise NonFinite(f"non-finite {what}[{left}, {right}]")
+    return left, right
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.base import Camera, Frame
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import CameraConfig
+    from jetbot_rt.config.sections import CameraConfig
 
 GST_LAUNCH = "gst-launch-1.0"
 

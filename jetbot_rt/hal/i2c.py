@@ -23,7 +23,7 @@ from jetbot_rt.errors import Fault, UsageError
 if TYPE_CHECKING:
     import argparse
 
-    from jetbot_rt.config import MotorsConfig
+    from jetbot_rt.config.sections import MotorsConfig
 
 RETRY_DELAY_S = 0.001
 EMULATOR_FLAG = "--board-emulator"

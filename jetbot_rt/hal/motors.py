@@ -25,9 +25,8 @@ import time
 import types
 from typing import TYPE_CHECKING, Any
 
-from jetbot_rt.actions import finite_pair
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.hal.base import Drive
+from jetbot_rt.hal.base import Drive, finite_pair
 from jetbot_rt.hal.i2c import I2CBus, I2CFault
 from jetbot_rt.hal.pca9685 import (
     ALL_LED_OFF_H,
@@ -43,7 +42,7 @@ from jetbot_rt.hal.pca9685 import (
 )
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import MotorsConfig
+    from jetbot_rt.config.sections import MotorsConfig
 
 
 HARDWARE_STOP = bytes((ALL_LED_OFF_H, FULL_BIT))
@@ -114,7 +113,26 @@ def channel_write(channel: int, duty: float) -> bytes:
     return bytes((LED0_ON_L + 4 * channel,)) + channel_registers(duty)
 
 
-class WaveshareDrive(Drive):
+class BoardDrive(Drive):
+    """What both motor boards share: a PCA9685 at ``address`` on ``bus``, stopped by the
+    hardware stop (every output full-off, then sleep), the bus's retries as its stats."""
+
+    def __init__(self, bus: I2CBus, address: int) -> None:
+        self.bus = bus
+        self.address = address
+        hardware_stop(bus, address)
+
+    def stop(self) -> None:
+        hardware_stop(self.bus, self.address)
+
+    def close(self) -> None:
+        self.bus.deinit()
+
+    def stats(self) -> dict[str, float]:
+        return {"i2c_retried": self.bus.retried}
+
+
+class WaveshareDrive(BoardDrive):
     """Registers written directly: all four motor channels (0..3, contiguous) in one
     auto-increment write, so both wheels change together at the write's STOP condition and
     no channel is ever seen half-updated (one transaction, 17 bytes, per tick)."""
@@ -124,9 +142,7 @@ class WaveshareDrive(Drive):
     CHANNELS = 4
 
     def __init__(self, bus: I2CBus, address: int, pwm_frequency: float) -> None:
-        self.bus = bus
-        self.address = address
-        hardware_stop(bus, address)
+        super().__init__(bus, address)
         bus.writeto(address, bytes((MODE1, MODE1_SLEEP | MODE1_AI)))  # PRE_SCALE needs SLEEP
         bus.writeto(address, bytes((PRE_SCALE, prescale_for(pwm_frequency))))
         bus.writeto(address, bytes((MODE2, MODE2_OUTDRV)))
@@ -144,15 +160,6 @@ class WaveshareDrive(Drive):
         mode1 = self.bus.transfer(self.address, [payload, bytes((MODE1,))], read=1)
         if any(duties):
             _check_awake(mode1[0], self.bus, self.address)
-
-    def stop(self) -> None:
-        hardware_stop(self.bus, self.address)
-
-    def close(self) -> None:
-        self.bus.deinit()
-
-    def stats(self) -> dict[str, float]:
-        return {"i2c_retried": self.bus.retried}
 
 
 # The MotorHAT's TB6612 PWM (enable) input for each of MotorKit's motors.
@@ -178,7 +185,7 @@ def _import_motorkit() -> Any:
     return MotorKit
 
 
-class MotorHatDrive(Drive):
+class MotorHatDrive(BoardDrive):
     """Adafruit DC & Stepper Motor HAT through ``MotorKit``. Zero is throttle ``None`` (both
     H-bridge inputs off, as the hardware stop leaves them), not MotorKit's brake."""
 
@@ -189,9 +196,7 @@ class MotorHatDrive(Drive):
             raise UsageError(
                 f"[motors] left_motor and right_motor must differ, both are {left_motor}"
             )
-        self.bus = bus
-        self.address = address
-        hardware_stop(bus, address)
+        super().__init__(bus, address)
         motorkit_class = _import_motorkit()
         self.kit = motorkit_class(address=address, i2c=bus, pwm_frequency=pwm_frequency)
         self._motor_numbers = (left_motor, right_motor)
@@ -211,14 +216,8 @@ class MotorHatDrive(Drive):
             motor.throttle = duty if duty != 0 else None
 
     def stop(self) -> None:
-        hardware_stop(self.bus, self.address)
+        super().stop()
         self._enables_off = True
-
-    def close(self) -> None:
-        self.bus.deinit()
-
-    def stats(self) -> dict[str, float]:
-        return {"i2c_retried": self.bus.retried}
 
 
 def open_drive(motors: MotorsConfig) -> Drive:

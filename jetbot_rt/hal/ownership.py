@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.runtime_dir import write_board_record
+from jetbot_rt.service.runtime_dir import write_board_record
 
 _held: dict[str, BoardLock] = {}
 

@@ -10,7 +10,7 @@ from jetbot_rt.hal.gst_camera import GstCamera
 from jetbot_rt.hal.motors import open_drive
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import Config, MotorsConfig
+    from jetbot_rt.config.sections import Config, MotorsConfig
     from jetbot_rt.hal.registry import BackendOptions
 
 

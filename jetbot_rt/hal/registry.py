@@ -7,11 +7,11 @@ import importlib
 from typing import TYPE_CHECKING
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.extras import sim_problem
 from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
+from jetbot_rt.workstation import sim_problem
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import Config
+    from jetbot_rt.config.sections import Config
     from jetbot_rt.hal.base import Robot
 
 # name -> module that defines ``build_backend(config, options)``

@@ -1,9 +1,7 @@
-"""PyBullet simulation of the JetBot: ``JetbotWorld`` and the ``sim`` HAL backend.
+"""PyBullet simulation of the JetBot: ``world.JetbotWorld``, the ``sim`` HAL backend, the tasks
+and the domain randomization.
 
-Importing this package imports pybullet; the runtime core never does (the backend registry
-imports ``jetbot_rt.sim.backend`` only when ``--backend sim`` is asked for).
+The modules that import pybullet are imported by name (the backend registry imports
+``jetbot_rt.sim.backend`` only when ``--backend sim`` is asked for); this package itself imports
+nothing, so that ``Config`` can read the ``[sim]`` schema (``sim.config``) on the robot.
 """
-
-from jetbot_rt.sim.world import JetbotWorld
-
-__all__ = ["JetbotWorld"]

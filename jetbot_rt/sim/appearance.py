@@ -14,7 +14,7 @@ from jetbot_rt.sim.pybullet_import import import_pybullet
 p = import_pybullet()
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import SimConfig
+    from jetbot_rt.sim.config import SimConfig
 
 FLOOR_LIGHT = (0.69, 0.667, 0.627)
 FLOOR_DARK = (0.439, 0.424, 0.4)

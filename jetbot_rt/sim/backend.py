@@ -27,8 +27,9 @@ from jetbot_rt.sim.tasks import get_task, sample_scene
 from jetbot_rt.sim.world import JetbotWorld
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import Config, SimConfig
+    from jetbot_rt.config.sections import Config
     from jetbot_rt.hal.registry import BackendOptions
+    from jetbot_rt.sim.config import SimConfig
 
 
 @dataclass(frozen=True)

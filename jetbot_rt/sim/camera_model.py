@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import SimConfig
+    from jetbot_rt.sim.config import SimConfig
 
 URDF_CAMERA_HEIGHT = 0.115
 """m above the floor of jetbot.urdf's camera_link (0.085 m above the 0.03 m axle)."""

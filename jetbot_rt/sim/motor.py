@@ -22,7 +22,7 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import SimConfig
+    from jetbot_rt.sim.config import SimConfig
 
 IDEAL_TORQUE = 0.15
 """N m per wheel: the ideal motor's force limit at any duty (about a small 1:48 gear motor's
@@ -59,11 +59,6 @@ class WheelMotors:
     def command(self, substep: int, left: float, right: float) -> None:
         """A duty pair written at sub-step index ``substep``; acts after the latency."""
         self._queue.append((substep + self._delay, (left, right)))
-
-    @property
-    def acting_duty(self) -> tuple[float, float]:
-        """The duties the motors act on now (after the latency)."""
-        return self._duty
 
     def substep(
         self, k: int, measured: tuple[float, float] | None

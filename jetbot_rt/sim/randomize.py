@@ -14,16 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from jetbot_rt.config import RandomizeConfig, SimConfig, set_value
+from jetbot_rt.config.schema import set_value
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.appearance import wall_colors
+from jetbot_rt.sim.config import RandomizeConfig, SimConfig, randomized_knobs
 
-DRAWN = (
-    "wheel_gain", "motor_gain", "deadband", "latency", "camera_latency", "stall_torque",
-    "camera_pitch_deg", "camera_height", "camera_vfov_deg", "floor_color", "wall_color",
-    "block_color", "light_direction", "light_intensity", "image_noise", "image_blur",
-    "image_brightness", "image_contrast", "seed", "floor_texture",
-)
+DRAWN = (*(name for name, _ in randomized_knobs()), "seed", "floor_texture")
 """The [sim] keys a draw sets (``seed`` seeds the episode's image noise)."""
 
 
@@ -48,36 +44,34 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
     """``base`` with every randomized knob drawn from ``ranges`` (always in the same order:
     the draw depends on the generator's state only)."""
     r = ranges
+    # the knobs drawn by code of their own ("custom"), first
     gains = _uniform(rng, r.wheel_gain, 2)
     azimuth = rng.uniform(-math.pi, math.pi)
     elevation = math.radians(_uniform(rng, r.light_elevation_deg))
     stall = _uniform(rng, r.stall_torque) if r.stall_torque is not None else None
     walls = [c for rgb in wall_colors(base) for c in _color(rng, list(rgb), r.wall_color, r.tint)]
-    drawn: dict[str, Any] = {
+    custom: dict[str, Any] = {
         "wheel_gain": [_r(min(base.wheel_gain[i] * gains[i], 2.0)) for i in (0, 1)],
-        "motor_gain": _r(base.motor_gain * _uniform(rng, r.motor_gain)),
-        "deadband": _r(_uniform(rng, r.deadband)),
-        "latency": _r(_uniform(rng, r.latency)),
-        "camera_latency": _r(_uniform(rng, r.camera_latency)),
         "stall_torque": _r(stall) if stall is not None else base.stall_torque,
-        "camera_pitch_deg": _r(base.camera_pitch_deg * _uniform(rng, r.camera_pitch_deg)),
-        "camera_height": _r(base.camera_height * _uniform(rng, r.camera_height)),
-        "camera_vfov_deg": _r(base.camera_vfov_deg * _uniform(rng, r.camera_vfov_deg)),
-        "floor_color": _color(rng, base.floor_color, r.floor_color, r.tint),
         "wall_color": walls,
-        "block_color": _color(rng, base.block_color, r.block_color, r.tint),
         "light_direction": [
             _r(math.cos(elevation) * math.cos(azimuth)),
             _r(math.cos(elevation) * math.sin(azimuth)),
             _r(math.sin(elevation)),
         ],
-        "light_intensity": _r(_uniform(rng, r.light_intensity)),
-        "image_noise": _r(_uniform(rng, r.image_noise)),
-        "image_blur": _r(_uniform(rng, r.image_blur)),
-        "image_brightness": _r(_uniform(rng, r.image_brightness)),
-        "image_contrast": _r(_uniform(rng, r.image_contrast)),
-        "seed": int(rng.integers(2**31)),
     }
+    drawn: dict[str, Any] = {}
+    for name, spec in randomized_knobs():  # then every other knob, in SimConfig's order
+        bounds = getattr(r, spec.key or name)
+        if spec.draw == "custom":
+            drawn[name] = custom[name]
+        elif spec.draw == "factor":
+            drawn[name] = _r(getattr(base, name) * _uniform(rng, bounds))
+        elif spec.draw == "color":
+            drawn[name] = _color(rng, getattr(base, name), bounds, r.tint)
+        else:
+            drawn[name] = _r(_uniform(rng, bounds))
+    drawn["seed"] = int(rng.integers(2**31))
     # drawn last, so that adding them left every earlier draw of a seed as it was
     plain = rng.random() < r.floor_plain
     grey = _uniform(rng, r.plain_floor_grey)

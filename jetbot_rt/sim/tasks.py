@@ -70,7 +70,7 @@ TASKS: dict[str, Task] = {
     # Why these numbers: docs/TRAINING.md ("The forward task").
     "forward": Task(
         name="forward",
-        description="drive to a red block 0.9 m straight ahead (the seed's task)",
+        description="drive to a red block 0.9 m straight ahead (the default task)",
         robot_pose=(-0.6, 0.0, 0.0),
         block_xy=(0.3, 0.0),
         episode_steps=450,
@@ -114,8 +114,8 @@ class Scene:
 
 def horizontal_fov_deg() -> float:
     """Of the nominal camera (``[sim] camera_vfov_deg``'s default): 82 degrees."""
-    from jetbot_rt.config import SimConfig
     from jetbot_rt.sim.camera_model import CAMERA_ASPECT
+    from jetbot_rt.sim.config import SimConfig
 
     vfov = SimConfig().camera_vfov_deg
     half = math.atan(CAMERA_ASPECT * math.tan(math.radians(vfov) / 2))

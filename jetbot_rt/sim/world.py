@@ -19,9 +19,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from jetbot_rt.actions import finite_pair
 from jetbot_rt.errors import UsageError
-from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE
+from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE, finite_pair
 from jetbot_rt.sim import appearance
 from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
 from jetbot_rt.sim.motor import WheelMotors
@@ -30,7 +29,7 @@ from jetbot_rt.sim.pybullet_import import import_pybullet
 p = import_pybullet()
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import SimConfig
+    from jetbot_rt.sim.config import SimConfig
 
 ASSETS = resources.files("jetbot_rt.sim") / "assets"
 
@@ -280,12 +279,6 @@ class JetbotWorld:
         """How far (m, on the floor) the goal block has moved from where ``reset`` put it."""
         x, y, _ = self.block_position()
         return math.hypot(x - self._block_start[0], y - self._block_start[1])
-
-    def distractor_positions(self) -> list[tuple[float, float, float]]:
-        """Centres (m) of the distractor blocks, in ``reset``'s order."""
-        c = self._client
-        return [tuple(p.getBasePositionAndOrientation(b, physicsClientId=c)[0])
-                for b in self._distractors]
 
     def robot_speed(self) -> float:
         """Horizontal speed (m/s) of the robot's centre of mass."""

@@ -40,7 +40,7 @@ import stat
 import struct
 import time
 import weakref
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -267,38 +267,6 @@ class PCA9685Emulator:
     def write_quick(self, i2c_addr: int, force: bool | None = None) -> None:
         with self._shared_state():
             self._transaction(i2c_addr)
-
-    def write_byte_data(
-        self, i2c_addr: int, register: int, value: int, force: bool | None = None
-    ) -> None:
-        with self._shared_state():
-            self._transaction(i2c_addr)
-            self._write(bytes((register, value)))
-            self.bytes += 2
-
-    def read_byte_data(self, i2c_addr: int, register: int, force: bool | None = None) -> int:
-        with self._shared_state():
-            self._transaction(i2c_addr)
-            self._pointer = register
-            self.bytes += 2
-            return self._read(1)[0]
-
-    def write_i2c_block_data(
-        self, i2c_addr: int, register: int, data: Sequence[int], force: bool | None = None
-    ) -> None:
-        with self._shared_state():
-            self._transaction(i2c_addr)
-            self._write(bytes((register, *data)))
-            self.bytes += 1 + len(data)
-
-    def read_i2c_block_data(
-        self, i2c_addr: int, register: int, length: int, force: bool | None = None
-    ) -> list[int]:
-        with self._shared_state():
-            self._transaction(i2c_addr)
-            self._pointer = register
-            self.bytes += 1 + length
-            return self._read(length)
 
     def close(self) -> None:
         """Closes the state file; the next transaction or ``refresh()`` opens it again."""

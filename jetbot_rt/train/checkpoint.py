@@ -29,9 +29,9 @@ from typing import Any
 
 import torch
 
-from jetbot_rt import safe_file
+from jetbot_rt.config import safe_file
+from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import UsageError, first_line
-from jetbot_rt.safe_file import shown
 from jetbot_rt.sim.tasks import TASKS
 from jetbot_rt.train.hyperparams import ModelConfig, OptionError, value_text
 from jetbot_rt.train.model import ActorCritic

@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from jetbot_rt.cli import HelpFormatter, OneLineParser, plain
+from jetbot_rt.cli_parser import HelpFormatter, OneLineParser, plain
 from jetbot_rt.errors import EXIT_OK, EXIT_USAGE, UsageError
 
 if TYPE_CHECKING:
@@ -205,7 +205,7 @@ def _export(args: argparse.Namespace, argv: list[str]) -> int:
 
 
 def _eval(args: argparse.Namespace, argv: list[str]) -> int:
-    from jetbot_rt.config import load_config
+    from jetbot_rt.config.sections import load_config
     from jetbot_rt.train.evaluate import evaluate
 
     # PyBullet's C library prints a banner on stdout; with --json, stdout carries only JSON.

@@ -20,7 +20,7 @@ import torch
 from gymnasium.vector import VectorEnv
 from tqdm import tqdm
 
-from jetbot_rt.config import Config
+from jetbot_rt.config.sections import Config
 from jetbot_rt.sim.tasks import get_task
 from jetbot_rt.train.dagger_sampler import LabelSampler
 from jetbot_rt.train.env import max_speed_of

@@ -16,9 +16,10 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from jetbot_rt.actions import ActionPipeline
-from jetbot_rt.config import Config, SimConfig
+from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.sim.config import SimConfig
 from jetbot_rt.sim.tasks import Scene, Task, get_task, outcome, sample_scene
 
 POLICY_IMAGE_SIZE = 56

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from jetbot_rt.config import Config
-from jetbot_rt.policy import OnnxPolicy, resolve_policy_path
+from jetbot_rt.config.sections import Config
+from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path
 from jetbot_rt.sim.tasks import get_task
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
 from jetbot_rt.train.hyperparams import OptionError

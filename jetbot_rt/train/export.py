@@ -19,12 +19,12 @@ import torch
 from torch import nn
 
 import jetbot_rt
-from jetbot_rt import safe_file
-from jetbot_rt.actions import DEFAULT_MAX_SPEED
-from jetbot_rt.config import COLOR_ORDERS, LAYOUTS, PIXEL_RANGES
+from jetbot_rt.config import safe_file
+from jetbot_rt.config.safe_file import shown
+from jetbot_rt.config.sections import COLOR_ORDERS, LAYOUTS, PIXEL_RANGES
 from jetbot_rt.errors import UsageError, first_line
-from jetbot_rt.policy import MAX_INPUT_SIDE, META_PREFIX
-from jetbot_rt.safe_file import shown
+from jetbot_rt.runtime.actions import DEFAULT_MAX_SPEED
+from jetbot_rt.runtime.policy import MAX_INPUT_SIDE, META_PREFIX
 from jetbot_rt.sim.tasks import TASKS
 from jetbot_rt.train.checkpoint import load_checkpoint
 from jetbot_rt.train.hyperparams import OptionError
@@ -50,7 +50,7 @@ class ExportError(UsageError):
 def policy_metadata(task: str | None, max_speed: float, image_size: int | tuple[int, int], *,
                     layout: str = "NHWC", color_order: str = "RGB",
                     pixel_range: str = "0-255") -> dict[str, str]:
-    """The ``jetbot_rt.*`` keys ``jetbot_rt.policy`` reads; ``image_size`` is a side or
+    """The ``jetbot_rt.*`` keys ``jetbot_rt.runtime.policy`` reads; ``image_size`` is a side or
     ``(height, width)``; no ``task`` key when ``task`` is None."""
     height, width = _size(image_size)
     metadata = {

@@ -12,7 +12,7 @@ import os
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
-from jetbot_rt.config import Config, from_dict, read_toml
+from jetbot_rt.config.sections import Config, from_dict, read_toml
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.tasks import get_task
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE

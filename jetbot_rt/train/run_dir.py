@@ -17,8 +17,8 @@ from typing import Any
 
 import torch
 
+from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import UsageError
-from jetbot_rt.safe_file import shown
 from jetbot_rt.train.checkpoint import (
     CHECKPOINT_NAME,
     Checkpoint,

@@ -23,7 +23,7 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
-from jetbot_rt.config import Config
+from jetbot_rt.config.sections import Config
 from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.wrappers import KeepInfo, Shaping, make_train_env
 

@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from jetbot_rt.config import Config
-from jetbot_rt.loop import TickResult
-from jetbot_rt.recorder import Recorder, sha256_of
+from jetbot_rt.config.sections import Config
+from jetbot_rt.recording.recorder import Recorder, sha256_of
+from jetbot_rt.runtime.loop import TickResult
 
 
 class EpisodeRecording:

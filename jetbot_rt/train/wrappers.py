@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.wrappers import RecordEpisodeStatistics, TransformReward
 
-from jetbot_rt.config import Config
+from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.env import JetbotEnv
 

@@ -25,11 +25,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from jetbot_rt import safe_file
+from jetbot_rt.config import safe_file
+from jetbot_rt.config.safe_file import MIB, shown
 from jetbot_rt.errors import UsageError
-from jetbot_rt.policy import MAX_INPUT_SIDE
-from jetbot_rt.recorder import FORMAT, VERSION
-from jetbot_rt.safe_file import MIB, shown
+from jetbot_rt.recording.recorder import FORMAT, VERSION
+from jetbot_rt.runtime.policy import MAX_INPUT_SIDE
 
 META_BYTES = 4 * MIB
 """``meta.json`` and ``summary.json``: a few KB (the config, the policy's metadata)."""

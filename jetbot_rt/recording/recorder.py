@@ -6,9 +6,9 @@ events), ``frames.mkv`` (the frames as the policy received them, HuffYUV: lossle
 reproduces ``mu`` to round-off) and, once the run ends, ``summary.json``.
 
 Encoding and writing happen in a writer process at the lowest CPU priority
-(``jetbot_rt.record_writer``, started by ``writer_command``): a thread would share the control
-thread's interpreter lock, and a preempted low-priority thread holding it stalls the tick
-(measured: ``bench_record.py``).
+(``jetbot_rt.recording.writer_process``, started by ``writer_command``): a thread would share
+the control thread's interpreter lock, and a preempted low-priority thread holding it stalls
+the tick (measured: ``bench_record.py``).
 The control thread only copies the frame into a free slot of shared memory and writes one
 line to a non-blocking pipe (``observe``). No free slot (``queue_frames`` frames wait for the
 disk) or a full pipe: the frame or record is dropped and counted, never the tick. A write
@@ -37,10 +37,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from jetbot_rt import safe_file
+from jetbot_rt.config import safe_file
 from jetbot_rt.errors import UsageError
-from jetbot_rt.loop import TickResult
-from jetbot_rt.record_writer import (
+from jetbot_rt.recording.telemetry import dumps
+from jetbot_rt.recording.writer_process import (
     DONE,
     ERROR,
     ERROR_TEXT,
@@ -51,9 +51,9 @@ from jetbot_rt.record_writer import (
     WRITTEN,
     layout,
 )
-from jetbot_rt.telemetry import dumps
+from jetbot_rt.runtime.loop import TickResult
 
-FORMAT = "jetbot_rt.recording"
+FORMAT = "jetbot_rt.recording.reader"
 VERSION = 1
 F_SETPIPE_SZ = 1031  # fcntl: a pipe's capacity (Linux)
 START_TIMEOUT = 20.0
@@ -63,7 +63,7 @@ CLOSE_TIMEOUT = 2.0
 
 
 WRITER_BOOTSTRAP = ("import sys; sys.path[:] = [p for p in sys.path if p]; "
-                    "from jetbot_rt.record_writer import main; sys.exit(main())")
+                    "from jetbot_rt.recording.writer_process import main; sys.exit(main())")
 """The writer's ``-c`` program. ``python -m`` (or ``-c``) puts the working directory first on
 ``sys.path``: a ``jetbot_rt/`` (or ``json.py``...) planted in a shared directory would run as
 the operator (root for the service) when someone records from there. Its first statement drops
@@ -74,7 +74,7 @@ The child also starts in ``/``, and is given absolute paths only."""
 
 
 def writer_command(config_json: str) -> list[str]:
-    """The writer process's command line (``jetbot_rt.record_writer.main``)."""
+    """The writer process's command line (``jetbot_rt.recording.writer_process.main``)."""
     return [sys.executable, "-c", WRITER_BOOTSTRAP, config_json]
 
 

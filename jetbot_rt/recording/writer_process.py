@@ -24,8 +24,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from jetbot_rt import safe_file
-from jetbot_rt.telemetry import dumps, finite
+from jetbot_rt.config import safe_file
+from jetbot_rt.recording.telemetry import dumps, finite
 
 HEADER_BYTES = 4096
 DONE, WRITTEN, RECORDS, LOST, ERROR = range(5)

@@ -19,11 +19,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from jetbot_rt.actions import ActionPipeline
 from jetbot_rt.errors import Fault
 from jetbot_rt.hal.base import Frame, Robot
-from jetbot_rt.histogram import Histogram
-from jetbot_rt.safety import GuardedDrive, SafeStopLatch, Watchdog
+from jetbot_rt.runtime.actions import ActionPipeline
+from jetbot_rt.runtime.histogram import Histogram
+from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch, Watchdog
 
 
 class Policy(Protocol):
@@ -82,11 +82,11 @@ class TickResult:
         return record
 
 
-TickObserver = "Callable[[TickResult], None]"
-"""A type alias kept a string: ``collections.abc.Callable[...]`` raises at run time on the
-robot's Python 3.8."""
-"""Called on the control thread after each completed tick: it must return at once (hand work
-to another thread) and never raise."""
+class TickObserver(Protocol):
+    """Called on the control thread after each completed tick: it must return at once (hand
+    work to another thread) and never raise."""
+
+    def __call__(self, result: TickResult, /) -> None: ...
 
 
 @dataclass
@@ -119,7 +119,7 @@ class Schedule:
 
 
 @dataclass(frozen=True)
-class Safety:
+class StopChain:
     """The safe-stop chain a tick answers to: the latch, the drive it guards, the watchdog."""
 
     latch: SafeStopLatch
@@ -147,7 +147,7 @@ class ControlLoop:
         robot: Robot,
         policy: Policy,
         actions: ActionPipeline,
-        safety: Safety,
+        safety: StopChain,
         schedule: Schedule,
         observers: Sequence[TickObserver] = (),
         stats: LoopStats | None = None,

@@ -16,10 +16,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from jetbot_rt import safe_file
-from jetbot_rt.config import LAYOUTS, Config, PolicyConfig
+from jetbot_rt.config import safe_file
+from jetbot_rt.config.safe_file import shown
+from jetbot_rt.config.sections import LAYOUTS, Config, PolicyConfig
 from jetbot_rt.errors import Fault, UsageError, first_line
-from jetbot_rt.safe_file import shown
 
 META_PREFIX = "jetbot_rt."
 PROVIDER_PREFERENCE = (
@@ -86,13 +86,13 @@ DEFAULT_TASK = "forward"
 
 def bundled_policy_path(task: str = DEFAULT_TASK) -> Path:
     """The policy bundled in the package for ``task`` (``policies/<task>.onnx``)."""
-    return Path(__file__).resolve().parent / "policies" / f"{task}.onnx"
+    return Path(__file__).resolve().parents[1] / "policies" / f"{task}.onnx"
 
 
 def bundled_task(config: Config) -> str:
     """The task whose bundled policy a run without ``--policy`` drives: ``[sim] task`` where
     one is bundled for it (``jetbot-rt run --backend sim`` with ``[sim] task = "seek"`` drives
-    the seek policy in the seek scene), else forward, the seed's task."""
+    the seek policy in the seek scene), else forward, the default task."""
     task = config.sim.task
     return task if task and bundled_policy_path(task).is_file() else DEFAULT_TASK
 

@@ -38,8 +38,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from jetbot_rt.config.safe_file import loads, open_regular, replaced_file, shown
 from jetbot_rt.errors import UsageError
-from jetbot_rt.safe_file import loads, open_regular, replaced_file, shown
 
 SERVICE_DIR = Path("/run/jetbot-rt")
 TMP = Path("/tmp")
@@ -314,7 +314,8 @@ def _read_record(path: Path, owners: tuple[int, ...]) -> BoardRecord:
     """One record, read as untrusted: not through a link, a regular file of one of
     ``owners``, at most ``MAX_RECORD_BYTES``, JSON of the known keys, each validated as the
     config validates ``[motors]``. Raises ``UsageError`` saying what is wrong."""
-    from jetbot_rt.config import MotorsConfig, set_value
+    from jetbot_rt.config.schema import set_value
+    from jetbot_rt.config.sections import MotorsConfig
 
     fd = open_regular(path, "board record", follow_links=False)
     try:

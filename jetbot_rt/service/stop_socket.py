@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.runtime_dir import SERVICE_DIR, default_dir, printable, private_dir, search
+from jetbot_rt.service.runtime_dir import SERVICE_DIR, default_dir, printable, private_dir, search
 
 __all__ = ["SERVICE_DIR", "ControlServer", "StopReply", "default_socket_dir",
            "default_socket_path", "request_stop"]

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 from jetbot_rt.errors import UsageError
 
 if TYPE_CHECKING:
-    from jetbot_rt.loop import TickResult
+    from jetbot_rt.runtime.loop import TickResult
 
 QUEUE_RECORDS = 4096
 """Records held in memory for the writer (over two minutes at 30 Hz)."""

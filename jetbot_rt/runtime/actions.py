@@ -3,31 +3,17 @@ shared by the runtime and the training environment."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from jetbot_rt.errors import Fault
+from jetbot_rt.hal.base import finite_pair
 
 if TYPE_CHECKING:
-    from jetbot_rt.config import ActionsConfig
+    from jetbot_rt.config.sections import ActionsConfig
 
 DEFAULT_MAX_SPEED = 0.1
-
-
-class NonFinite(Fault, ValueError):
-    """A NaN or an infinity where a wheel command is due: a fault while driving (safe stop), a
-    ``ValueError`` to callers of the sim world's API."""
-
-
-def finite_pair(left: float, right: float, what: str = "duty ") -> tuple[float, float]:
-    """``(left, right)`` as floats; ``NonFinite`` naming ``what`` if either is NaN or infinite.
-    The one non-finite check: the action pipeline, the motor drivers and the sim world call it."""
-    left, right = float(left), float(right)
-    if not (math.isfinite(left) and math.isfinite(right)):
-        raise NonFinite(f"non-finite {what}[{left}, {right}]")
-    return left, right
 
 
 def _clamp(value: float, low: float, high: float) -> float:
