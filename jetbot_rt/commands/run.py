@@ -25,6 +25,7 @@ from jetbot_rt.commands.run_phases import (
     Connect,
     Drive,
     Load,
+    Monitor,
     PaceGui,
     Prepare,
     Services,
@@ -61,6 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="record every tick's frame and record into this new directory "
                              "(docs/RECORDING.md; look at it with jetbot-rt report DIR)")
     parser.add_argument("--gui", action="store_true", help="open PyBullet's window (sim only)")
+    parser.add_argument("--monitor", metavar="[HOST:]PORT",
+                        help="serve the live page (camera, actions, state, a STOP button) on "
+                             "this address; HOST defaults to 127.0.0.1, any other needs the "
+                             "token (docs/MONITOR.md; default: [monitor] listen, off)")
     add_emulator_argument(parser)
 
 
@@ -82,6 +87,7 @@ def build_config(args: argparse.Namespace) -> Config:
         ("policy", "path", args.policy, "--policy"),
         ("record", "path", getattr(args, "record", None), "--record"),
         ("motors", "emulator", getattr(args, "board_emulator", None), EMULATOR_FLAG),
+        ("monitor", "listen", getattr(args, "monitor", None), "--monitor"),
     ]
     for section, key, value, flag in overrides:
         if value is None:
@@ -127,9 +133,10 @@ class Runtime:
         services = Services(self)
         load = Load(self)
         prepare = Prepare(self, load)
+        self.monitor = Monitor(self, load, prepare)
         connect = Connect(self, load, prepare)
         warm_up = WarmUp(self, load, prepare, connect)
-        return [services, load, prepare, connect, StartCamera(connect), warm_up,
+        return [services, load, prepare, self.monitor, connect, StartCamera(connect), warm_up,
                 PaceGui(self, connect), Drive(self, services, load, prepare, connect, warm_up)]
 
     # ---- every way out ------------------------------------------------------------------

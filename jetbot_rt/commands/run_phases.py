@@ -1,5 +1,6 @@
 """The phases of ``jetbot-rt run`` after configure, in the order ``Runtime`` enters them:
-services -> load -> prepare -> connect -> start camera -> warm up -> pace gui -> drive.
+services -> load -> prepare -> monitor -> connect -> start camera -> warm up -> pace gui ->
+drive.
 
 Each phase is a ``lifecycle.Phase``: ``enter`` brings its part up (what later phases need is
 left on its attributes), ``exit`` releases what ``enter`` opened, also when ``enter`` failed
@@ -34,6 +35,7 @@ from jetbot_rt.runtime.safety import GuardedDrive, Watchdog
 
 if TYPE_CHECKING:
     from jetbot_rt.commands.run import Runtime
+    from jetbot_rt.monitor.server import MonitorServer
     from jetbot_rt.service.stop_socket import ControlServer
     from jetbot_rt.service.systemd_notify import Notifier
 
@@ -106,6 +108,45 @@ class Prepare(Phase):
                                       rt.telemetry.t0)
         if self.recorder is not None:
             rt.shutdown.close_with_summary(self.recorder)
+
+
+class Monitor(Phase):
+    """The live page (``--monitor``, ``[monitor] listen``; jetbot_rt/monitor): bound before the
+    robot connects, so a port in use is bad input with the motors never moved. Its observer
+    keeps only a reference to the newest tick; a STOP from the page trips the latch as
+    ``jetbot-rt stop`` does. Its exit (after the motors' zero) tells the page how the run
+    ended."""
+
+    def __init__(self, rt: Runtime, load: Load, prepare: Prepare) -> None:
+        self.rt = rt
+        self.load = load
+        self.prepare = prepare
+        self.server: MonitorServer | None = None
+
+    def enter(self) -> None:
+        rt = self.rt
+        if rt.config.monitor.listen is None:
+            return
+        from jetbot_rt.monitor import start
+        from jetbot_rt.monitor.observer import RunView
+
+        policy = self.load.policy
+        view = RunView(rt.latch, rt.stats, rt.config.loop.rate_hz, rt.telemetry.t0,
+                       fit=policy.fit, bgr_model=policy.spec.color_order == "BGR",
+                       recorder=self.prepare.recorder)
+        self.server = start(rt.config.monitor, view,
+                            lambda reason: rt.latch.trip(reason, fault=False))
+
+    def observe(self) -> list[Callable[[TickResult], None]]:
+        return [self.server.view.observe] if self.server is not None else []
+
+    def exit(self) -> None:
+        if self.server is None:
+            return
+        rt = self.rt
+        self.server.view.ended = {"reason": rt.latch.reason, "fault": rt.latch.fault,
+                                  "exit_code": 3 if rt.latch.fault else 0}
+        self.server.close()
 
 
 class Connect(Phase):
@@ -313,6 +354,7 @@ class Drive(Phase):
             observers.append(self.prepare.recorder.observe)
         if rt.telemetry.enabled:
             observers.append(rt.telemetry.observe)
+        observers += rt.monitor.observe()
         return observers
 
     def _announce(self, watchdog_timeout: float) -> None:

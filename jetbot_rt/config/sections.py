@@ -23,6 +23,7 @@ else:  # pragma: no cover - Python 3.10 (JetPack 6) path
 from jetbot_rt.config import safe_file
 from jetbot_rt.config.schema import check, one_of, pair, set_value, within
 from jetbot_rt.errors import UsageError
+from jetbot_rt.monitor.config import MonitorConfig
 from jetbot_rt.sim.config import RandomizeConfig, SimConfig
 
 MOTOR_LAYOUTS = ("waveshare", "adafruit_motorhat")
@@ -194,6 +195,7 @@ class Config:
     camera: CameraConfig = field(default_factory=CameraConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
+    monitor: MonitorConfig = field(default_factory=MonitorConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     randomize: RandomizeConfig = field(default_factory=RandomizeConfig)
 

@@ -1,0 +1,111 @@
+// The monitor page: the state from /events (server-sent events), the images from the MJPEG
+// streams, one STOP (POST /stop). No library, no build step: the robot is often offline.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+let over = false;
+
+function fmt(v, digits, unit) {
+  return v === null || v === undefined ? "–" : Number(v).toFixed(digits) + (unit || "");
+}
+
+function bar(id, value) {
+  const v = Math.max(-1, Math.min(1, Number(value) || 0));
+  const el = $(id);
+  el.style.width = (Math.abs(v) * 50) + "%";
+  el.style.left = v >= 0 ? "50%" : (50 + v * 50) + "%";
+  $(id + "-v").textContent = fmt(value, 3);
+}
+
+function showState(s) {
+  const el = $("state");
+  el.textContent = s.state;
+  el.className = "state " + (s.fault ? "fault" : s.state.split(" ")[0]);
+  $("reason").textContent = s.reason || "";
+}
+
+function drawTrajectory(points) {
+  const canvas = $("trajectory");
+  if (!points || points.length < 1) return;
+  canvas.hidden = false;
+  const ctx = canvas.getContext("2d");
+  let xs = points.map((p) => p[0]), ys = points.map((p) => p[1]);
+  const minX = Math.min(...xs, 0) - 0.2, maxX = Math.max(...xs, 0) + 0.2;
+  const minY = Math.min(...ys, 0) - 0.2, maxY = Math.max(...ys, 0) + 0.2;
+  const scale = Math.min(canvas.width / (maxX - minX), canvas.height / (maxY - minY));
+  const px = (p) => [(p[0] - minX) * scale, canvas.height - (p[1] - minY) * scale];
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  ctx.strokeStyle = "#4493f8";
+  ctx.lineWidth = 2;
+  ctx.beginPath();
+  points.forEach((p, i) => { const [x, y] = px(p); i ? ctx.lineTo(x, y) : ctx.moveTo(x, y); });
+  ctx.stroke();
+  const [x, y] = px(points[points.length - 1]);
+  ctx.fillStyle = "#fff";
+  ctx.beginPath(); ctx.arc(x, y, 4, 0, 2 * Math.PI); ctx.fill();
+}
+
+function update(s) {
+  showState(s);
+  const r = s.record;
+  if (r) {
+    bar("mu-left", r.mu[0]); bar("mu-right", r.mu[1]);
+    bar("cmd-left", r.cmd[0]); bar("cmd-right", r.cmd[1]);
+    $("tick-ms").textContent = fmt(r.tick_ms, 2, " ms") + " (p99 " + fmt(s.tick_ms_p99, 2, " ms") + ")";
+    $("infer-ms").textContent = fmt(r.infer_ms, 2, " ms");
+    $("frame-age").textContent = fmt(r.frame_age_ms, 1, " ms");
+    if (r.goal_distance !== undefined) {
+      $("goal-row").hidden = false;
+      $("goal").textContent = fmt(r.goal_distance, 2, " m");
+    }
+  }
+  $("rate").textContent = fmt(s.measured_hz, 1, " Hz") + " (target " + fmt(s.target_hz, 0, " Hz") + ")";
+  $("ticks").textContent = s.ticks;
+  $("overruns").textContent = s.overruns;
+  const st = s.stream;
+  $("stream").textContent = st.frames_sent + " sent, " + st.frames_dropped + " dropped (slow clients)";
+  const rec = s.recording;
+  $("recording").textContent = !rec ? "off" : (rec.error ? "stopped: " + rec.error :
+    rec.frames_written + " frames written, " + rec.frames_dropped + " dropped");
+  if (s.trajectory) drawTrajectory(s.trajectory);
+  if (s.ended) end(s);
+}
+
+function end(s) {
+  if (over) return;
+  over = true;
+  document.body.classList.add("over");
+  const e = s.ended;
+  const banner = $("ended");
+  banner.hidden = false;
+  banner.className = e.fault ? "fault" : "";
+  banner.textContent = "The run ended" + (e.fault ? " with a safe stop (fault)" : "") + ": " +
+    (e.reason || "stopped") + " — exit " + e.exit_code + "; motors at zero.";
+  $("stop").disabled = true;
+  $("state").textContent = "ended";
+  events.close();
+}
+
+const events = new EventSource("/events");
+events.onmessage = (m) => update(JSON.parse(m.data));
+events.addEventListener("end", (m) => update(JSON.parse(m.data)));
+events.onerror = () => {
+  if (over) return;
+  // The server is gone without saying how (the process was killed): say so, retry.
+  $("state").textContent = "connection lost";
+  $("state").className = "state fault";
+};
+
+$("stop").addEventListener("click", async () => {
+  const button = $("stop");
+  button.disabled = true;
+  button.textContent = "STOPPING";
+  try {
+    const reply = await fetch("/stop", { method: "POST", credentials: "same-origin" });
+    if (!reply.ok) throw new Error("HTTP " + reply.status);
+  } catch (err) {
+    button.disabled = false;
+    button.textContent = "STOP";
+    $("reason").textContent = "stop not confirmed (" + err.message + "): use jetbot-rt stop";
+  }
+});
