@@ -106,10 +106,16 @@ def enable_stack_dumps(file: TextIO | None = None) -> None:
     """For a command that drives: SIGABRT, SIGSEGV, SIGBUS, SIGFPE and SIGILL print every
     thread's stack (faulthandler, from C: Python may be wedged) before the process dies, and
     the handler ``install`` gives ``WATCHDOG`` prints them from Python first. ``file``: the
-    interpreter's own stderr by default (the journal under systemd)."""
+    interpreter's own stderr by default (the journal under systemd), else ``sys.stderr``.
+    Without any (a run started with stderr closed) the run drives without stack dumps: they
+    would have nowhere to go (``console`` keeps fd 2 on /dev/null, never another file)."""
     global _stack_file
-    _stack_file = file if file is not None else sys.__stderr__
-    with contextlib.suppress(ValueError, OSError, AttributeError):  # stderr without a file
+    for candidate in (file, sys.__stderr__, sys.stderr):
+        if candidate is not None:
+            _stack_file = candidate
+            break
+    # ValueError/OSError: a stream without a descriptor; RuntimeError: none at all
+    with contextlib.suppress(ValueError, OSError, AttributeError, RuntimeError):
         faulthandler.enable(file=_stack_file, all_threads=True)
 
 
@@ -117,7 +123,7 @@ def _stacks_first(handler: Callable[[int, Any], None]) -> Callable[[int, Any], N
     def stacks_then_stop(signum: int, frame: Any) -> None:
         # Past this point the threads run again (the stop below, a SIGCONT): a later SIGABRT
         # (the unit's FinalKillSignal) must read no frame but its own thread's.
-        with contextlib.suppress(ValueError, OSError, AttributeError):
+        with contextlib.suppress(ValueError, OSError, AttributeError, RuntimeError):
             faulthandler.enable(file=_stack_file, all_threads=False)
         text = (f"jetbot-rt: {name(signum)} (systemd's WatchdogSignal: no WATCHDOG=1 within "
                 f"WatchdogSec): the stack of every thread, most recent call first\n"
