@@ -28,6 +28,8 @@ COMMANDS = {
                "with the recorded one (no motor is touched)"),
     "report": ("report", "look at a recording or a telemetry file: run.mp4, run.png and the "
                "summary"),
+    "calibrate": ("calibrate", "measure the robot with its camera and a printed marker; write "
+                  "the [sim] keys that make the simulator drive like it"),
 }
 
 
@@ -47,7 +49,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
 NEVER_INTERRUPTED = {"stop"}
 """Commands a signal never cuts short: ``stop`` (systemd's ExecStopPost, an operator's last
 resort) finishes writing the stop, then exits with its own code; SIGKILL still ends it."""
-NEVER_BLOCKED = {"run", "stop", "check"}
+NEVER_BLOCKED = {"run", "stop", "check", "calibrate"}
 """Commands that touch the motor board: their stdout and stderr never block (a pipe nobody
 reads, a terminal stopped by Ctrl-S, a stalled journald), ``jetbot_rt.service.console``. The others
 (report, replay...) print as Python does: a reader that is slow is waited for."""

@@ -1,0 +1,85 @@
+"""What the camera measures: the printed ArUco marker's centre, as a horizontal range and a
+bearing from the camera, from its four corners and its known size (OpenCV's aruco module and
+``solvePnP``). Only the marker's position is used, never its estimated orientation: a small
+square's orientation is ambiguous (two poses fit nearly equally well), its position is not."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Optional, Tuple
+
+import cv2
+import numpy as np
+
+MARKER_DICT = cv2.aruco.DICT_4X4_50
+MARKER_ID = 7
+SENSOR_ASPECT = 16 / 9
+"""The camera's field of view is the sensor's 16:9, as the sim renders it (sim/camera_model)."""
+
+
+def marker_png() -> Path:
+    """The printable page: marker id 7 of DICT_4X4_50 and one white cell around it."""
+    return Path(str(resources.files("jetbot_rt") / "data" / "aruco-4x4-id7.png"))
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """What the fit and the measurement need to know of the robot and the marker (metres)."""
+
+    marker_size: float = 0.10
+    """The marker's black square, edge to edge, as printed."""
+    marker_height: float = 0.0667
+    """The marker's centre above the floor (the page standing on the floor: 2/3 of its size)."""
+    camera_height: float = 0.115
+    camera_offset: float = 0.06
+    """The camera ahead of the wheel axle."""
+    wheel_radius: float = 0.03
+    track: float = 0.11
+    vfov_deg: float = 52.0
+    """The pinhole's vertical field of view over the 16:9 sensor ([sim] camera_vfov_deg)."""
+
+
+def camera_matrix(width: int, height: int, vfov_deg: float) -> np.ndarray:
+    """A pinhole over the 16:9 field of view, scaled to a frame of ``width`` x ``height`` (the
+    pixels are not square when the frame is not 16:9, as the sim's and the gst pipeline's)."""
+    tan_v = math.tan(math.radians(vfov_deg) / 2)
+    fx = (width / 2) / (SENSOR_ASPECT * tan_v)
+    fy = (height / 2) / tan_v
+    return np.array([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=np.float64)
+
+
+class MarkerMeter:
+    """Finds the marker in a frame; ``measure`` gives (range m, bearing rad, right positive)."""
+
+    def __init__(self, geometry: Geometry, frame_size: Tuple[int, int]) -> None:
+        self.geometry = geometry
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        self._detector = cv2.aruco.ArucoDetector(
+            cv2.aruco.getPredefinedDictionary(MARKER_DICT), params)
+        self._matrix = camera_matrix(frame_size[0], frame_size[1], geometry.vfov_deg)
+        half = geometry.marker_size / 2
+        self._object = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0],
+                                 [-half, -half, 0]], dtype=np.float64)
+
+    def measure(self, image: np.ndarray) -> Optional[Tuple[float, float]]:
+        corners, ids, _ = self._detector.detectMarkers(image)
+        if ids is None:
+            return None
+        found = [c for c, i in zip(corners, ids.ravel()) if i == MARKER_ID]
+        if len(found) != 1:
+            return None
+        ok, _rvec, tvec = cv2.solvePnP(self._object, found[0].reshape(4, 2).astype(np.float64),
+                                       self._matrix, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        if not ok:
+            return None
+        tx, ty, tz = (float(v) for v in tvec.ravel())
+        drop = self.geometry.marker_height - self.geometry.camera_height
+        horizontal = tx * tx + ty * ty + tz * tz - drop * drop
+        if horizontal <= tx * tx or not math.isfinite(horizontal):
+            return None
+        reach = math.sqrt(horizontal)
+        return reach, math.asin(tx / reach)

@@ -1,0 +1,236 @@
+"""``jetbot-rt calibrate``: measure the robot with its own camera and write the ``[sim]`` keys
+that make the simulator drive like it (docs/CALIBRATION.md).
+
+The drive is ``jetbot-rt run``'s: the same phases (control socket, the board's single owner,
+the latch, the watchdog, the signals, the recorder, exit codes), with the drive programme
+(``calibration.programme``) in the policy's place and the marker watched on every frame. Then
+the fit (``calibration.fit``) reads the recording back; ``--fit RECORDING`` does only that.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from pathlib import Path
+from typing import List
+
+import numpy as np
+
+from jetbot_rt.calibration.fit import Data, fit, to_toml
+from jetbot_rt.calibration.measure import Geometry, MarkerMeter, marker_png
+from jetbot_rt.calibration.programme import Limits, Programme, duration
+from jetbot_rt.commands.lifecycle import Phase
+from jetbot_rt.commands.run import Runtime
+from jetbot_rt.commands.run_phases import Connect, Drive, Load
+from jetbot_rt.config import safe_file
+from jetbot_rt.errors import EXIT_OK, UsageError
+from jetbot_rt.hal.i2c import add_emulator_argument
+from jetbot_rt.hal.registry import BACKEND_MODULES
+from jetbot_rt.recording.reader import Recording
+from jetbot_rt.recording.recorder import expand_path
+
+FRAME_SIZE = (320, 180)
+SIM_MARKER_DISTANCE = 0.5
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--backend", choices=sorted(BACKEND_MODULES),
+                        help="sim or real: drive the programme and fit (not with --fit)")
+    parser.add_argument("--fit", metavar="RECORDING",
+                        help="fit a calibration recording again, without driving")
+    parser.add_argument("--config", help="TOML config file ([loop], [motors], [actions] sign; "
+                        "in the sim, [sim] is the robot to measure)")
+    parser.add_argument("--out", help="write the [sim] table to this file (default: print it)")
+    parser.add_argument("--record", metavar="DIR", default="calibration-{time}",
+                        help="the recording of the drive (default: calibration-{time})")
+    parser.add_argument("--yes", action="store_true", help="do not ask to clear the area")
+    parser.add_argument("--max-duty", type=float, default=Limits.max_duty,
+                        help=f"largest duty of any step, in (0, 0.6] (default {Limits.max_duty})")
+    parser.add_argument("--max-travel", type=float, default=Limits.max_travel,
+                        help="stop when the marker's range changes by more than this many m "
+                             f"(default {Limits.max_travel})")
+    parser.add_argument("--marker-size", type=float, default=Geometry.marker_size,
+                        help=f"the printed marker's black square, m (default "
+                             f"{Geometry.marker_size})")
+    parser.add_argument("--marker-height", type=float,
+                        help="its centre above the floor, m (default: 2/3 of --marker-size, "
+                             "the page standing on the floor)")
+    parser.add_argument("--wheel-radius", type=float, default=Geometry.wheel_radius)
+    parser.add_argument("--track", type=float, default=Geometry.track,
+                        help="distance between the wheels' centres, m")
+    parser.add_argument("--camera-offset", type=float, default=Geometry.camera_offset,
+                        help="camera ahead of the wheel axle, m")
+    add_emulator_argument(parser)
+
+
+def _geometry(args: argparse.Namespace, camera_height: float, vfov_deg: float) -> Geometry:
+    checks = [("--marker-size", args.marker_size, 0.01, 1.0),
+              ("--wheel-radius", args.wheel_radius, 0.005, 0.5),
+              ("--track", args.track, 0.02, 1.0), ("--camera-offset", args.camera_offset, -0.5,
+                                                    0.5)]
+    height = args.marker_height if args.marker_height is not None else args.marker_size * 2 / 3
+    checks.append(("--marker-height", height, 0.0, 2.0))
+    for flag, value, low, high in checks:
+        if not (math.isfinite(value) and low <= value <= high):
+            raise UsageError(f"{flag} must be in [{low:g}, {high:g}], got {value:g}")
+    return Geometry(marker_size=args.marker_size, marker_height=height,
+                    camera_height=camera_height, camera_offset=args.camera_offset,
+                    wheel_radius=args.wheel_radius, track=args.track, vfov_deg=vfov_deg)
+
+
+class LoadProgramme(Phase):
+    """In ``Load``'s place: the programme is the policy."""
+
+    def __init__(self, programme: Programme) -> None:
+        self.policy = programme
+
+    def enter(self) -> None:
+        """Nothing to load."""
+
+
+class PlaceMarker(Phase):
+    """Sim only: the printed page in front of the robot, and the world run until the robot
+    has settled and the camera's latency queue shows the page."""
+
+    def __init__(self, rt: Calibration, connect: Connect) -> None:
+        self.rt = rt
+        self.connect = connect
+
+    def enter(self) -> None:
+        if self.rt.args.backend != "sim":
+            return
+        from jetbot_rt.sim.fiducial import place_marker
+
+        robot, _ = self.connect.connected
+        geometry = self.rt.programme.geometry
+        place_marker(robot, SIM_MARKER_DISTANCE, geometry.marker_size,  # type: ignore[arg-type]
+                     geometry.marker_height)
+        robot.step(0.5)
+
+
+class Arm(Phase):
+    def __init__(self, rt: Calibration, connect: Connect) -> None:
+        self.rt = rt
+        self.connect = connect
+
+    def enter(self) -> None:
+        robot, _ = self.connect.connected
+        self.rt.programme.arm(robot.simulated)
+
+
+class Calibration(Runtime):
+    """``jetbot-rt run`` with the programme for a policy."""
+
+    def __init__(self, args: argparse.Namespace, limits: Limits) -> None:
+        for name in ("policy", "max_speed", "telemetry", "rate"):
+            setattr(args, name, None)
+        args.gui = False
+        args.duration = duration(limits.max_duty) + 0.5
+        args.record = str(expand_path(args.record))  # known here: the fit reads it back
+        super().__init__(args)
+        self.config.actions.max_speed = 1.0  # the programme's duties are the duties
+        self.config.actions.trim = [1.0, 1.0]  # the robot as it is, untrimmed
+        sim = self.config.sim
+        geometry = _geometry(args, sim.camera_height, sim.camera_vfov_deg)
+        self.programme = Programme(geometry, limits, FRAME_SIZE, self.config.loop.rate_hz)
+
+    def phases(self) -> List[Phase]:
+        """``run``'s phases with the programme in ``Load``'s place (every phase that reads
+        the policy is given it), the page placed once connected (sim), armed before the drive."""
+        load = LoadProgramme(self.programme)
+        phases: List[Phase] = []
+        for phase in super().phases():
+            if hasattr(phase, "load"):
+                phase.load = load  # type: ignore[attr-defined]
+            if isinstance(phase, Load):
+                phase = load
+            if isinstance(phase, Drive):
+                phases.append(Arm(self, connect))
+            phases.append(phase)
+            if isinstance(phase, Connect):
+                connect = phase
+                phases.append(PlaceMarker(self, connect))
+        return phases
+
+
+def _limits(args: argparse.Namespace) -> Limits:
+    if not (math.isfinite(args.max_duty) and 0 < args.max_duty <= 0.6):
+        raise UsageError(f"--max-duty must be in (0, 0.6], got {args.max_duty:g}")
+    if not (math.isfinite(args.max_travel) and 0.02 <= args.max_travel <= 2.0):
+        raise UsageError(f"--max-travel must be in [0.02, 2] m, got {args.max_travel:g}")
+    return Limits(max_duty=args.max_duty, max_travel=args.max_travel)
+
+
+def read_data(path: str) -> tuple[Data, Geometry, float]:
+    """The ticks of a calibration recording: when each duty was written, the duties, and
+    what each frame showed."""
+    recording = Recording.open(path)
+    described = recording.meta.get("policy", {})
+    if not isinstance(described, dict) or described.get("programme") != "calibrate":
+        raise UsageError(f"{path} is not a calibration recording (jetbot-rt calibrate --record)")
+    try:
+        geometry = Geometry(**{k: float(v) for k, v in described["geometry"].items()})
+        max_duty = float(described["limits"]["max_duty"])
+        width, height = (int(v) for v in recording.meta["frame_size"])
+        period = 1.0 / float(recording.meta["rate_hz"])
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise UsageError(f"{path}: meta.json's calibration is unreadable ({exc})") from None
+    meter = MarkerMeter(geometry, (width, height))
+    rows: list[list[float]] = []
+    for record, image in recording.ticks_with_frames():
+        # the sim's time is the world's (after the tick's step); on the robot, the tick's
+        t = (float(record["sim_time"]) - period if "sim_time" in record
+             else float(record["t"]))
+        seen = meter.measure(image) if image is not None else None
+        cmd = record.get("cmd") or [0.0, 0.0]
+        rows.append([t, float(cmd[0]), float(cmd[1]),
+                     *(seen if seen is not None else (math.nan, math.nan))])
+    if len(rows) < 30:
+        raise UsageError(f"{path}: {len(rows)} ticks recorded; too few to fit")
+    table = np.array(rows)
+    return Data(table[:, 0], table[:, 1:3], table[:, 3], table[:, 4]), geometry, max_duty
+
+
+def fit_recording(path: str, out: str | None) -> int:
+    data, geometry, max_duty = read_data(path)
+    try:
+        result = fit(data, geometry, max_duty)
+    except ValueError as exc:
+        raise UsageError(f"{path}: {exc}") from None
+    text = to_toml(result, geometry, path)
+    if out:
+        target = Path(out)
+        try:
+            with safe_file.replaced_file(target.parent, target.name) as fd:
+                os.write(fd, text.encode())
+        except OSError as exc:
+            raise UsageError(f"cannot write {out}: {exc.strerror or exc}") from None
+        print(f"wrote {out}")
+    else:
+        print(text, end="")
+    return EXIT_OK
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.fit:
+        if args.backend:
+            raise UsageError("--fit reads a recording; it takes no --backend")
+        return fit_recording(args.fit, args.out)
+    if not args.backend:
+        raise UsageError("give --backend (sim or real) to drive, or --fit RECORDING")
+    limits = _limits(args)
+    calibration = Calibration(args, limits)
+    if not args.yes:
+        print(f"jetbot-rt calibrate drives for {duration(limits.max_duty):.0f} s at duties up "
+              f"to {limits.max_duty:g} and stops if the marker's range changes by "
+              f"{limits.max_travel:g} m. Print {marker_png()} with its black square "
+              f"{args.marker_size * 100:g} cm wide, stand it ~0.5 m ahead of the camera, clear "
+              "the area. Enter to start, Ctrl-C to cancel: ", end="", flush=True)
+        if sys.stdin.readline() == "":
+            raise UsageError("no answer on stdin (use --yes)")
+    result = calibration.run()
+    if result.exit_code != EXIT_OK:
+        return result.exit_code
+    return fit_recording(str(calibration.config.record.path), args.out)
