@@ -13,8 +13,9 @@ from gymnasium.utils.env_checker import check_env
 
 from jetbot_rt.config.sections import from_dict
 from jetbot_rt.errors import UsageError
-from jetbot_rt.sim.tasks import TASKS
-from jetbot_rt.train.env import POLICY_IMAGE_SIZE, JetbotEnv, forward_reward
+from jetbot_rt.tasks import load_task
+from jetbot_rt.tasks.forward import Forward, forward_reward
+from jetbot_rt.train.env import POLICY_IMAGE_SIZE, JetbotEnv
 
 pytest.importorskip("pybullet")
 
@@ -67,7 +68,7 @@ def test_same_seed_same_start_and_frames_different_seed_different_start(env):
     assert all(np.array_equal(a, b) for a, b in zip(frames_a, frames_b, strict=True))
     _, info_c = env.reset(seed=124)
     assert not np.allclose(info_a["pose"], info_c["pose"])
-    task = TASKS["forward"]
+    task = load_task("forward")
     offset = np.abs(np.array(info_a["pose"]) - np.array(task.robot_pose))
     assert offset[0] <= task.start_xy_noise and offset[1] <= task.start_xy_noise
     assert offset[2] <= task.start_yaw_noise
@@ -112,8 +113,10 @@ def test_driving_forward_approaches_the_block_and_reward_grows(env):
 
 
 def test_episode_ends_only_by_the_time_limit():
-    short = TASKS["forward"].__class__(**{**TASKS["forward"].__dict__, "episode_steps": 5})
-    environment = JetbotEnv(short)
+    class Short(Forward):
+        episode_steps = 5
+
+    environment = JetbotEnv(Short())
     try:
         environment.reset(seed=0)
         flags = [environment.step(np.zeros(2))[2:4] for _ in range(5)]

@@ -4,17 +4,27 @@ its fixed success definition checked on the real PyBullet world."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import gymnasium
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from jetbot_rt.sim.tasks import TASKS, horizontal_fov_deg, sample_scene
+from jetbot_rt.tasks import load_task
+from jetbot_rt.tasks.seek import horizontal_fov_deg
 
 pytest.importorskip("pybullet")
 
-SEEK = TASKS["seek"]
+SEEK = load_task("seek")
+
+
+def sample_scene(task, rng, start_noise=True):
+    """(robot_pose, goal_xy, distractors as (x, y, colour)) of a drawn scene."""
+    scene = task.scene(rng, start_noise)
+    goal, *others = scene.pieces
+    return SimpleNamespace(robot_pose=scene.robot_pose, goal_xy=goal.xy,
+                           distractors=[(*b.xy, b.color) for b in others])
 
 
 def _bearing(robot: tuple[float, float, float], xy: tuple[float, ...]) -> float:
@@ -103,7 +113,7 @@ def test_the_goal_is_in_the_first_frame_and_distractors_are_other_colours(env):
 def _reset_in_front(env, gap: float, seed: int = 0):
     """The robot at ``gap`` m (axle to goal centre) from the goal, facing it."""
     env.reset(seed=seed)
-    gx, gy = env.scene.goal_xy
+    gx, gy = env.scene.piece("goal").xy
     return env.reset(seed=seed, options={"robot_pose": (gx - gap, gy, 0.0)})
 
 

@@ -120,7 +120,7 @@ def test_seek_scene_and_randomized_draw_are_the_same_in_env_and_runtime(tmp_path
                     image_size=(policy.spec.width, policy.spec.height))
     try:
         obs, first = env.reset(seed=seed, options={"start_noise": False})
-        assert len(env.scene.distractors) >= 1 and first["sim_params"]["latency"] > 0
+        assert len(env.scene.pieces) >= 2 and first["sim_params"]["latency"] > 0
         env_pose, env_goal, env_mu = [], [], []
         for _ in ticks:
             mu = policy.infer(obs)

@@ -38,7 +38,7 @@ def test_outcome_bonus_and_episode_statistics_carry_the_true_return():
     env = make_train_env("seek", None, Shaping("none", success_bonus=7.0))
     try:
         env.reset(seed=0)
-        gx, gy = env.unwrapped.scene.goal_xy
+        gx, gy = env.unwrapped.scene.piece("goal").xy
         env.reset(seed=0, options={"robot_pose": (gx - 0.13, gy, 0.0)})
         _, reward, terminated, _, info = env.step(np.zeros(2))
         assert terminated and reward == pytest.approx(8.0)

@@ -85,9 +85,11 @@ class Summary:
                 f"  tick time    p50 {loop.tick_ms_p50:.2f} ms, p99 {loop.tick_ms_p99:.2f} ms",
                 f"  overruns     {loop.overruns}",
             ]
-        if "travelled_m" in self.counts:
-            lines.append(f"  travelled    {self.counts['travelled_m']:.2f} m; ends "
-                         f"{self.counts['goal_distance_m']:.2f} m from the goal block")
+        if "travelled_m" in self.counts:  # a scene without a goal piece has no distance
+            goal = self.counts.get("goal_distance_m")
+            lines.append(f"  travelled    {self.counts['travelled_m']:.2f} m"
+                         + (f"; ends {goal:.2f} m from the goal block" if goal is not None
+                            else ""))
         if "i2c_retried" in self.counts:
             lines.append(f"  i2c retried  {self.counts['i2c_retried']} transfers")
         if self.telemetry_lost:

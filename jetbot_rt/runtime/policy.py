@@ -93,8 +93,9 @@ def bundled_task(config: Config) -> str:
     """The task whose bundled policy a run without ``--policy`` drives: ``[sim] task`` where
     one is bundled for it (``jetbot-rt run --backend sim`` with ``[sim] task = "seek"`` drives
     the seek policy in the seek scene), else forward, the default task."""
-    task = config.sim.task
-    return task if task and bundled_policy_path(task).is_file() else DEFAULT_TASK
+    task = config.sim.task  # a plain name only: a path or FILE:Class bundles nothing
+    return task if task and task.isidentifier() and bundled_policy_path(task).is_file() \
+        else DEFAULT_TASK
 
 
 def resolve_policy_path(given: str | Path | None, task: str = DEFAULT_TASK) -> Path:

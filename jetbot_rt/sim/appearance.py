@@ -43,9 +43,10 @@ def wall_colors(sim: SimConfig) -> list[tuple[float, ...]]:
     return [tuple(sim.wall_color[i:i + 3]) for i in range(0, 12, 3)]
 
 
-def apply_colors(client: int, room: int, block: int, sim: SimConfig) -> None:
-    """Colour the floor tiles, the four walls and the goal block (only those that differ
-    from the URDFs' colours: a set colour passes through float32 and may shift a pixel)."""
+def apply_colors(client: int, room: int, block: int | None, sim: SimConfig) -> None:
+    """Colour the floor tiles, the four walls and the goal block, if given (only those that
+    differ from the URDFs' colours: a set colour passes through float32 and may shift a
+    pixel)."""
     light = tuple(sim.floor_color)
     dark = light if sim.floor_texture == "plain" else tuple(
         c * dark / base for c, dark, base in zip(light, FLOOR_DARK, FLOOR_LIGHT, strict=True)
@@ -56,7 +57,7 @@ def apply_colors(client: int, room: int, block: int, sim: SimConfig) -> None:
         if tuple(rgb) != default:
             p.changeVisualShape(room, -1, shapeIndex=shape, rgbaColor=(*rgb, 1.0),
                                 physicsClientId=client)
-    if tuple(sim.block_color) != BLOCK_COLOR:
+    if block is not None and tuple(sim.block_color) != BLOCK_COLOR:
         p.changeVisualShape(block, -1, rgbaColor=(*sim.block_color, 1.0),
                             physicsClientId=client)
 

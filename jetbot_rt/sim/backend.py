@@ -21,10 +21,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.base import Camera, Drive, Frame, Robot
 from jetbot_rt.sim.randomize import sample
-from jetbot_rt.sim.tasks import get_task, sample_scene
 from jetbot_rt.sim.world import JetbotWorld
+from jetbot_rt.tasks import DEFAULT_TASK, load_task
+from jetbot_rt.tasks.loader import is_code_reference
 
 if TYPE_CHECKING:
     from jetbot_rt.config.sections import Config
@@ -106,8 +108,13 @@ class SimRobot(Robot):
         super().__init__(self._sim_camera)
         self._world = world
         # What the robot did, kept up to date here: the summary is built after the world closed.
+        # The distance to the piece named "goal", in scenes that have one.
         self._travelled_m = 0.0
-        self._goal_distance_m = world.distance_to_block()
+        self._goal_distance_m = self._goal_distance()
+
+    def _goal_distance(self) -> float | None:
+        world = self._world
+        return world.distance("goal") if world.has_piece("goal") else None
 
     def open_drive(self) -> Drive:
         return SimDrive(self._world)
@@ -118,33 +125,50 @@ class SimRobot(Robot):
         world.step(dt)
         x1, y1, _ = world.robot_pose()
         self._travelled_m += math.hypot(x1 - x0, y1 - y0)
-        self._goal_distance_m = world.distance_to_block()
+        self._goal_distance_m = self._goal_distance()
         self._sim_camera.capture()
 
     def state(self) -> dict[str, object]:
-        return {"pose": list(self._world.robot_pose()), "sim_time": self._world.sim_time,
-                "goal_distance": self._goal_distance_m}
+        state: dict[str, object] = {"pose": list(self._world.robot_pose()),
+                                    "sim_time": self._world.sim_time}
+        if self._goal_distance_m is not None:
+            state["goal_distance"] = self._goal_distance_m
+        return state
 
     def stats(self) -> dict[str, float]:
-        return {"travelled_m": round(self._travelled_m, 3),
-                "goal_distance_m": round(self._goal_distance_m, 3)}
+        stats = {"travelled_m": round(self._travelled_m, 3)}
+        if self._goal_distance_m is not None:
+            stats["goal_distance_m"] = round(self._goal_distance_m, 3)
+        return stats
 
     def disconnect(self) -> None:
         self.camera.stop()
         self._world.close()
 
 
+def scene_task(config: Config, options: BackendOptions) -> str:
+    """The task whose scene to build: ``[sim] task``, else the policy's metadata, else
+    forward. A policy file names its task but is no one's command to run code: a metadata
+    task that is a file or module (``X:Class``) is refused; ``[sim] task`` may name one."""
+    if config.sim.task:
+        return config.sim.task
+    named = options.task
+    if named and is_code_reference(named):
+        raise UsageError(f"the policy's task {named!r} is code in a file or module; to run "
+                         "it, name it yourself: [sim] task = \"...\" in the config")
+    return named or DEFAULT_TASK
+
+
 def build_backend(config: Config, options: BackendOptions) -> Robot:
-    """The world in the scene of the policy's task (``[sim] task``, else the policy's
-    metadata, else forward) drawn with ``[sim] seed``, the robot at the task's nominal pose
-    -- the env's ``reset(seed=seed, options={"start_noise": False})`` --, rendering at the
-    policy's frame size. With ``[randomize] enabled = true`` the [sim] knobs are drawn once,
-    from the same seeded generator after the scene (as the env does)."""
-    task = get_task(config.sim.task or options.task or "forward")
+    """The world in the scene of the policy's task (``scene_task``) drawn with ``[sim]
+    seed``, the robot at the task's nominal pose -- the env's ``reset(seed=seed,
+    options={"start_noise": False})`` --, rendering at the policy's frame size. With
+    ``[randomize] enabled = true`` the [sim] knobs are drawn once, from the same seeded
+    generator after the scene (as the env does)."""
+    task = load_task(scene_task(config, options))
     rng = np.random.default_rng(config.sim.seed)
-    scene = sample_scene(task, rng, start_noise=False)
+    scene = task.scene(rng, False)
     world = JetbotWorld(config.sim, gui=options.gui, image_size=tuple(options.frame_size))
-    world.reset(robot_pose=scene.robot_pose, block_xy=scene.goal_xy,
-                sim=sample(config.sim, config.randomize, rng) if config.randomize.enabled
-                else None, distractors=scene.distractors)
+    world.reset(scene=scene, sim=sample(config.sim, config.randomize, rng)
+                if config.randomize.enabled else None)
     return SimRobot(world, config.sim)

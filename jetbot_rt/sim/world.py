@@ -25,6 +25,7 @@ from jetbot_rt.sim import appearance
 from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
 from jetbot_rt.sim.motor import WheelMotors
 from jetbot_rt.sim.pybullet_import import import_pybullet
+from jetbot_rt.tasks.scene import BLOCK_HALF_SIZE, Block, Box, Piece, Scene, Tape, Wall, rgb
 
 p = import_pybullet()
 
@@ -39,13 +40,8 @@ CAMERA_NEAR = 0.01
 CAMERA_FAR = 5.0
 """m; the room's diagonal is 4.2 m."""
 GRAVITY = -9.81
-BLOCK_HALF_SIZE = 0.025
-BLOCK_COLORS: dict[str, tuple[float, float, float]] = {
-    "red": (0.9, 0.05, 0.05),
-    "green": (0.1, 0.65, 0.15),
-    "blue": (0.1, 0.2, 0.9),
-}
-"""RGB of the blocks: the goal is red (block.urdf's colour), distractors green or blue."""
+TAPE_HALF_THICKNESS = 0.0005
+"""m; tape lies this much above the floor's top (z = 0), which it would flicker through."""
 
 LEFT, RIGHT, CAMERA_LINK = 0, 1, 3  # joint/link indices in jetbot.urdf's order
 _WHEELS = (LEFT, RIGHT)
@@ -74,7 +70,7 @@ def _asset(name: str) -> str:
 
 
 class JetbotWorld:
-    """A JetBot, a room and a red goal block in one PyBullet client of its own.
+    """A JetBot in its room with a task's scene pieces, in one PyBullet client of its own.
 
     Several worlds can live in one process (each has its own client; the global default
     client is never used). ``image_size`` is (width, height) of ``render()``'s image;
@@ -122,20 +118,32 @@ class JetbotWorld:
         block_xy: tuple[float, float] = (0.3, 0.0),
         sim: SimConfig | None = None,
         distractors: Sequence[tuple[float, float, str]] = (),
+        *,
+        scene: Scene | None = None,
     ) -> None:
-        """Place the robot (x, y, yaw), the red goal block and the distractor blocks
-        (``(x, y, colour name)``, see ``BLOCK_COLORS``); motors at rest, ``sim_time`` = 0.
-        ``sim``: new ``[sim]`` settings from this episode on (the domain randomization's
-        draw); the physics rate, the image size and supersample stay the world's own.
+        """Build ``scene`` (a task's: the robot's pose and the pieces, in their order); without
+        one, the robot at ``robot_pose`` (x, y, yaw), the goal block (``[sim] block_color``,
+        named ``"goal"``) at ``block_xy`` and the ``distractors`` (``(x, y, colour name)``).
+        Motors at rest, ``sim_time`` = 0. ``sim``: new ``[sim]`` settings from this episode on
+        (the domain randomization's draw); the physics rate, the image size and supersample
+        stay the world's own.
 
         The scene is rebuilt from its URDFs (a few ms): PyBullet keeps contact and
         overlapping-pair caches that moving the bodies back does not clear, and only a
         rebuilt world replays bit for bit like a new one.
         """
+        if scene is None:
+            scene = Scene(robot_pose, (Block(block_xy, name="goal"),
+                                       *(Block((x, y), color) for x, y, color in distractors)))
         if sim is not None:
             self._sim = dataclasses.replace(
                 sim, physics_hz=self._sim.physics_hz, supersample=self._sim.supersample
             )
+        room_sim = self._sim
+        if scene.floor_color is not None:
+            room_sim = dataclasses.replace(room_sim, floor_color=list(rgb(scene.floor_color)))
+        if scene.wall_color is not None:
+            room_sim = dataclasses.replace(room_sim, wall_color=list(rgb(scene.wall_color)))
         c = self._client
         if self._gui:  # no half-built scene on screen
             p.configureDebugVisualizer(p.COV_ENABLE_RENDERING, 0, physicsClientId=c)
@@ -143,25 +151,23 @@ class JetbotWorld:
         p.setGravity(0, 0, GRAVITY, physicsClientId=c)
         p.setTimeStep(self._dt_physics, physicsClientId=c)
         p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=c)
-        room = p.loadURDF(_asset("room.urdf"), useFixedBase=True, physicsClientId=c)
-        x, y, yaw = robot_pose
+        self._room = p.loadURDF(_asset("room.urdf"), useFixedBase=True, physicsClientId=c)
+        x, y, yaw = scene.robot_pose
         self._robot = p.loadURDF(
             _asset("jetbot.urdf"), (x, y, WHEEL_RADIUS), p.getQuaternionFromEuler((0, 0, yaw)),
             physicsClientId=c,
         )
-        self._block = p.loadURDF(
-            _asset("block.urdf"), (block_xy[0], block_xy[1], BLOCK_HALF_SIZE), physicsClientId=c
-        )
-        appearance.apply_colors(c, room, self._block, self._sim)
-        self._block_start = (float(block_xy[0]), float(block_xy[1]))
-        self._distractors: list[int] = []
-        for dx, dy, color in distractors:
-            if color not in BLOCK_COLORS:
-                raise UsageError(f"unknown block colour {color!r} (known: {sorted(BLOCK_COLORS)})")
-            body = p.loadURDF(_asset("block.urdf"), (dx, dy, BLOCK_HALF_SIZE), physicsClientId=c)
-            p.changeVisualShape(body, -1, rgbaColor=(*BLOCK_COLORS[color], 1.0),
-                                physicsClientId=c)
-            self._distractors.append(body)
+        appearance.apply_colors(c, self._room, None, room_sim)
+        self._pieces: dict[str, int] = {}
+        self._starts: dict[str, tuple[float, float]] = {}
+        self._bodies: list[int] = []
+        for piece in scene.pieces:
+            body = self._build(piece)
+            self._bodies.append(body)
+            if piece.name:
+                self._pieces[piece.name] = body
+                self._starts[piece.name] = self._start_xy(piece, body)
+        self._scene = scene
         info = p.getDynamicsInfo(self._robot, -1, physicsClientId=c)
         self._com_to_link = p.invertTransform(info[3], info[4], physicsClientId=c)
         # Free-wheeling until the first step: PyBullet's default joint motor would brake.
@@ -185,6 +191,63 @@ class JetbotWorld:
         self._mount = mount_delta(self._sim)
         if self._frames.delay:
             self._frames.put(0, self.render())
+
+    def _build(self, piece: Piece) -> int:
+        """One piece's body, in the client (colours via ``scene.rgb``)."""
+        c = self._client
+        if isinstance(piece, Block):
+            body = p.loadURDF(_asset("block.urdf"), (piece.xy[0], piece.xy[1], BLOCK_HALF_SIZE),
+                              physicsClientId=c)
+            color = rgb(piece.color) if piece.color is not None else (
+                tuple(self._sim.block_color)
+                if tuple(self._sim.block_color) != appearance.BLOCK_COLOR else None)
+            if color is not None:  # a set colour passes through float32: only when it differs
+                p.changeVisualShape(body, -1, rgbaColor=(*color, 1.0), physicsClientId=c)
+            return body
+        if isinstance(piece, Wall):
+            piece = piece.as_box()
+        if isinstance(piece, Box):
+            half = [s / 2 for s in piece.size]
+            shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
+            look = p.createVisualShape(p.GEOM_BOX, halfExtents=half,
+                                       rgbaColor=(*rgb(piece.color), 1.0), physicsClientId=c)
+            return p.createMultiBody(0.0, shape, look, (piece.xy[0], piece.xy[1], half[2]),
+                                     p.getQuaternionFromEuler((0, 0, piece.yaw)),
+                                     physicsClientId=c)
+        if isinstance(piece, Tape):
+            return self._tape(piece)
+        raise UsageError(f"not a scene piece: {piece!r}")
+
+    def _start_xy(self, piece: Piece, body: int) -> tuple[float, float]:
+        if isinstance(piece, (Block, Box)):
+            return (float(piece.xy[0]), float(piece.xy[1]))
+        position, _ = p.getBasePositionAndOrientation(body, physicsClientId=self._client)
+        return (float(position[0]), float(position[1]))
+
+    def _tape(self, tape: Tape) -> int:
+        """Tape: a flat visual box per segment (as long as the segment plus the width, so the
+        corners close), no collision; one multibody holding them all."""
+        c = self._client
+        color = (*rgb(tape.color), 1.0)
+        shapes, positions, orientations = [], [], []
+        for (x0, y0), (x1, y1) in tape.segments():
+            length = math.hypot(x1 - x0, y1 - y0) + tape.width
+            shapes.append(p.createVisualShape(
+                p.GEOM_BOX, halfExtents=(length / 2, tape.width / 2, TAPE_HALF_THICKNESS),
+                rgbaColor=color, physicsClientId=c))
+            positions.append(((x0 + x1) / 2, (y0 + y1) / 2, TAPE_HALF_THICKNESS))
+            orientations.append(p.getQuaternionFromEuler((0, 0, math.atan2(y1 - y0, x1 - x0))))
+        if not shapes:
+            raise UsageError("tape needs at least two points")
+        n = len(shapes)
+        return p.createMultiBody(
+            0.0, -1, -1, (0.0, 0.0, TAPE_HALF_THICKNESS),
+            linkMasses=[0.0] * n, linkCollisionShapeIndices=[-1] * n,
+            linkVisualShapeIndices=shapes, linkPositions=positions,
+            linkOrientations=orientations, linkInertialFramePositions=[(0, 0, 0)] * n,
+            linkInertialFrameOrientations=[(0, 0, 0, 1)] * n, linkParentIndices=[0] * n,
+            linkJointTypes=[p.JOINT_FIXED] * n, linkJointAxis=[(0, 0, 1)] * n,
+            physicsClientId=c)
 
     def set_duty(self, left: float, right: float) -> None:
         """Duties in [-1, 1] as the motor board gets them (clipped like a PWM output);
@@ -270,24 +333,64 @@ class JetbotWorld:
         yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
         return (x, y, yaw)
 
-    def block_position(self) -> tuple[float, float, float]:
-        """The block's centre (m)."""
-        position, _ = p.getBasePositionAndOrientation(self._block, physicsClientId=self._client)
-        return tuple(position)
-
-    def block_shift(self) -> float:
-        """How far (m, on the floor) the goal block has moved from where ``reset`` put it."""
-        x, y, _ = self.block_position()
-        return math.hypot(x - self._block_start[0], y - self._block_start[1])
-
     def robot_speed(self) -> float:
         """Horizontal speed (m/s) of the robot's centre of mass."""
         (vx, vy, _), _ = p.getBaseVelocity(self._robot, physicsClientId=self._client)
         return math.hypot(vx, vy)
 
+    def _body(self, name: str) -> int:
+        if name not in self._pieces:
+            raise KeyError(f"no piece named {name!r} in this scene "
+                           f"(named: {', '.join(sorted(self._pieces)) or 'none'})")
+        return self._pieces[name]
+
+    def position(self, name: str) -> tuple[float, float, float]:
+        """The centre (m) of the piece called ``name``."""
+        position, _ = p.getBasePositionAndOrientation(self._body(name),
+                                                      physicsClientId=self._client)
+        return tuple(position)
+
+    def shift(self, name: str) -> float:
+        """How far (m, on the floor) the piece called ``name`` moved since ``reset``."""
+        x, y, _ = self.position(name)
+        x0, y0 = self._starts[name]
+        return math.hypot(x - x0, y - y0)
+
+    def distance(self, name: str) -> float:
+        """From the robot's base_link origin to the centre of the piece ``name``, 3-D (m)."""
+        return math.dist(self._robot_frame()[0], self.position(name))
+
+    def touching(self, name: str | None = None) -> bool:
+        """Whether the robot touches the piece ``name`` (None: any piece, or a wall)."""
+        c = self._client
+        if name is not None:
+            return bool(p.getContactPoints(self._robot, self._body(name), physicsClientId=c))
+        if any(p.getContactPoints(self._robot, body, physicsClientId=c)
+               for body in self._bodies):
+            return True
+        # The room is one body: its floor carries the wheels (normals vertical), its walls not.
+        return any(abs(point[7][2]) < 0.5
+                   for point in p.getContactPoints(self._robot, self._room, physicsClientId=c))
+
+    def has_piece(self, name: str) -> bool:
+        return name in self._pieces
+
+    @property
+    def scene(self) -> Scene:
+        """The scene ``reset`` built."""
+        return self._scene
+
     def distance_to_block(self) -> float:
-        """From the robot's base_link origin to the block's centre, in 3-D (m)."""
-        return math.dist(self._robot_frame()[0], self.block_position())
+        """``distance("goal")``: the default scene's goal block."""
+        return self.distance("goal")
+
+    def block_position(self) -> tuple[float, float, float]:
+        """``position("goal")``."""
+        return self.position("goal")
+
+    def block_shift(self) -> float:
+        """``shift("goal")``."""
+        return self.shift("goal")
 
     def wheel_velocities(self) -> tuple[float, float]:
         """Measured (left, right) wheel angular velocities, rad/s, positive forward."""

@@ -32,12 +32,13 @@ import torch
 from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import UsageError, first_line
-from jetbot_rt.sim.tasks import TASKS
 from jetbot_rt.train.hyperparams import ModelConfig, OptionError, value_text
 from jetbot_rt.train.model import ActorCritic
 
 CHECKPOINT_FORMAT = "jetbot_rt.ppo/1"
 CHECKPOINT_NAME = "checkpoint.pt"
+MAX_TASK_NAME = 4096
+"""Characters of a checkpoint's task name (a built-in's, or FILE.py:Class)."""
 MAX_CHECKPOINT_BYTES = 128 * safe_file.MIB
 """The largest network the trainer builds (``args.MAX_PARAMETERS``, 32 MB of float32) with
 Adam's two moments is 96 MB; anything larger is not one of ours."""
@@ -272,8 +273,11 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
 
 def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
     task = state.get("task")
-    if not isinstance(task, str) or task not in TASKS:
-        raise _Defect(f"task must be one of {', '.join(sorted(TASKS))}, got {value_text(task)}")
+    # A task's name, never loaded here (a checkpoint is no one's command to run code): a run
+    # resumes only with the task it names (check_resumable).
+    if not isinstance(task, str) or not 0 < len(task) <= MAX_TASK_NAME or \
+            not task.isprintable():
+        raise _Defect(f"task must be a task's name, got {value_text(task)}")
     algo = state.get("algo", "ppo")
     if not isinstance(algo, str) or algo not in ALGOS:
         raise _Defect(f"algo must be one of {', '.join(ALGOS)}, got {value_text(algo)}")

@@ -30,8 +30,8 @@ EXIT_WORKERS_LOST = 75
 """``--ray``: env workers lost beyond their restarts (sysexits' EX_TEMPFAIL: try again later,
 with ``--resume`` when a checkpoint was written)."""
 ALGOS = ("ppo", "dagger")
-TASK_ALGO = {"seek": "dagger"}
-"""The default --algo per task (docs/TRAINING.md, "Training seek by DAgger", says why)."""
+TASK_HELP = ("a task's name (tasks below), path/to/file.py:Class or package.module:Class "
+             "(docs/TASKS.md)")
 
 
 FLAG_OF = {"num_workers": "--num-envs", "ray_address": "--ray"}
@@ -56,13 +56,20 @@ def spelled(error: OptionError, table: dict[str, Any], args: argparse.Namespace)
 
 
 def _task_list() -> str:
-    from jetbot_rt.sim.tasks import TASKS
+    from jetbot_rt.tasks.loader import describe
 
-    return "tasks: " + "; ".join(f"{t.name} -- {t.description}" for t in TASKS.values())
+    return "tasks: " + describe() + "; or your own: FILE.py:Class (docs/TASKS.md)"
+
+
+def default_algo(task: str) -> str:
+    """dagger where the task has a privileged expert (docs/TRAINING.md, "Training seek by
+    DAgger", says why), else ppo."""
+    from jetbot_rt.tasks import load_task
+
+    return "dagger" if load_task(task).expert() is not None else "ppo"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from jetbot_rt.sim.tasks import TASKS
     from jetbot_rt.train.evaluate import ABLATIONS
     from jetbot_rt.train.flags import add_ppo_arguments, positive_int
 
@@ -70,7 +77,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="jetbot-train", description=plain(__doc__.splitlines()[0]),
                            epilog=_task_list())
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
-    tasks = sorted(TASKS)
     cores = os.cpu_count() or 1
 
     train = sub.add_parser(
@@ -80,15 +86,14 @@ def build_parser() -> argparse.ArgumentParser:
         "checkpoint.pt, policy.onnx, metrics.csv, learning_curve.png (and TensorBoard events "
         "when tensorboard is installed) to --out. Ctrl-C saves a checkpoint and prints the "
         "command that resumes.", epilog=_task_list())
-    train.add_argument("--task", default="forward", choices=tasks, help="the task to learn")
+    train.add_argument("--task", default="forward", help="the task to learn: " + TASK_HELP)
     train.add_argument("--config", help="TOML file: [sim], [actions], [loop] shape the env; "
                        "a [train] table (and [train.model]) sets the options below")
     train.add_argument(
         "--algo", choices=ALGOS,
         help="ppo: reinforcement learning from the task's reward; dagger: imitation of a "
-        "privileged expert that reads the sim's state (seek only; the policy still sees only "
-        "the camera). Default: " + ", ".join(f"{t}: {a}" for t, a in TASK_ALGO.items())
-        + ", other tasks: ppo")
+        "privileged expert that reads the sim's state (tasks with one: seek; the policy still "
+        "sees only the camera). Default: dagger where the task has an expert, else ppo")
     add_ppo_arguments(train)
 
     export = sub.add_parser(
@@ -107,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
         "frame preparation; --ablate runs the same episodes blind or with a seam opened.",
         epilog=_task_list())
     evaluate.add_argument("--policy", help="ONNX file (default: the policy bundled for --task)")
-    evaluate.add_argument("--task", default="forward", choices=tasks, help="the task")
+    evaluate.add_argument("--task", default="forward", help="the task: " + TASK_HELP)
     evaluate.add_argument("--episodes", type=positive_int, default=100, help="episodes")
     evaluate.add_argument("--num-envs", type=positive_int, default=cores,
                           help="worker processes (one per core)")
@@ -124,17 +129,17 @@ def build_parser() -> argparse.ArgumentParser:
                           help="record each episode into DIR/episode-<seed>/ as run --record "
                                "does (look at it with jetbot-rt report)")
     evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
-    _add_sweep_parser(sub, tasks)
+    _add_sweep_parser(sub)
     return parser
 
 
-def _add_sweep_parser(sub: Any, tasks: list[str]) -> None:
+def _add_sweep_parser(sub: Any) -> None:
     sweep = sub.add_parser(
         "sweep", help="train several seeds / configs across a Ray cluster, one results table",
         description="Train several seeds (and configs, e.g. randomization ranges) at once "
         "across a Ray cluster, evaluate each policy, print one table of results. Each trial "
         "is a train run with the task's PPO defaults and its config's [train] table.")
-    sweep.add_argument("--task", default="forward", choices=tasks, help="the task to learn")
+    sweep.add_argument("--task", default="forward", help="the task to learn: " + TASK_HELP)
     sweep.add_argument("--timesteps", type=int, help="env steps per trial (default: the "
                        "task's, or the config's [train] total_timesteps)")
     sweep.add_argument("--num-envs", type=int, default=2,
@@ -167,7 +172,7 @@ def _train(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.train.run_dir import Interrupted
 
     config, table = read_config_file(args.config)
-    algo = args.algo or TASK_ALGO.get(args.task, "ppo")
+    algo = args.algo or default_algo(args.task)
     build, train = (dagger_args, dagger.train) if algo == "dagger" else (ppo_args, ppo.train)
     try:
         options = build(args.task, overrides(args, table, algo))
@@ -226,19 +231,21 @@ def _eval(args: argparse.Namespace, argv: list[str]) -> int:
         ablated = f" (ablate {result['ablate']})" if result["ablate"] else ""
         print(f"policy {result['policy']}{ablated}, task {result['task']}: "
               f"success {result['success_rate']:.0%} over {result['episodes']} episodes, "
-              f"mean return {result['mean_return']:.4g}, "
-              f"mean final distance {result['mean_final_distance']:.3f} m "
-              f"(success: final distance < {result['success_distance']} m)")
+              f"mean return {result['mean_return']:.4g}"
+              + (f", mean final distance {result['mean_final_distance']:.3f} m"
+                 if result["mean_final_distance"] is not None else "")
+              + (f" (success: final distance < {result['success_distance']} m)"
+                 if result["success_distance"] is not None else ""))
     return EXIT_OK
 
 
 def _sweep(args: argparse.Namespace, argv: list[str]) -> int:
-    from jetbot_rt.train.sweep import sweep
+    from jetbot_rt.train.sweep import markdown_table, sweep
 
-    sweep(args.task, args.out, seeds=args.seeds, configs=args.config or [None],
-          num_envs=args.num_envs, timesteps=args.timesteps, eval_episodes=args.eval_episodes,
-          ray_address=args.ray)
-    print((Path(args.out) / "sweep.md").read_text(), end="")
+    rows = sweep(args.task, args.out, seeds=args.seeds, configs=args.config or [None],
+                 num_envs=args.num_envs, timesteps=args.timesteps,
+                 eval_episodes=args.eval_episodes, ray_address=args.ray)
+    print(markdown_table(rows), end="")
     return EXIT_OK
 
 

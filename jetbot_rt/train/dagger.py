@@ -21,10 +21,10 @@ from gymnasium.vector import VectorEnv
 from tqdm import tqdm
 
 from jetbot_rt.config.sections import Config
-from jetbot_rt.sim.tasks import get_task
+from jetbot_rt.tasks import load_task
 from jetbot_rt.train.dagger_sampler import LabelSampler
 from jetbot_rt.train.env import max_speed_of
-from jetbot_rt.train.expert import Expert
+from jetbot_rt.train.expert import task_expert
 from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig
 from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.run_dir import Interrupted, Panel, Progress, RunDirectory, starting_model
@@ -34,8 +34,11 @@ from jetbot_rt.train.wrappers import Shaping
 METRIC_FIELDS = ("iteration", "global_step", "wall_s", "collect_s", "regress_s", "dataset",
                  "beta", "episodes", "success_rate", "expert_success_rate", "loss")
 NO_SHAPING = Shaping("none", 0.0, 0.0, 0.0, 0.0)
-EXPERT_INFO = ("pose", "goal_xy", "speed", "is_success")
-"""The info keys DAgger reads: the expert's inputs, and the outcome of an episode."""
+OUTCOME_INFO = ("is_success",)
+"""The info keys DAgger reads besides the expert's inputs (its ``reads``)."""
+EXPERT_SETTINGS = ("stop_distance", "min_forward", "search_left", "search_right",
+                   "backoff_distance")
+"""The DAgger options that tune an expert that has fields of these names (the goal tasks')."""
 
 
 class Dataset:
@@ -94,7 +97,7 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
     return float(np.mean(losses)) if losses else float("nan")
 
 
-def collect(envs: VectorEnv, model: ActorCritic, expert: Expert, data: Dataset,
+def collect(envs: VectorEnv, model: ActorCritic, expert: Any, data: Dataset,
             args: DAggerArgs, iteration: int, bar: tqdm) -> dict[str, Any]:
     """Roll out one iteration in the env workers (``dagger_sampler``); add every frame of
     their finished episodes with its label."""
@@ -131,7 +134,8 @@ def learning_rate_at(args: DAggerArgs, iteration: int) -> float:
 def labelling_spec(task: str, config: Config, model: ModelConfig) -> EnvSpec:
     """Envs driven by a ``LabelSampler`` each, with the task's reward as is (DAgger reads only
     the expert's inputs and the outcome)."""
-    return EnvSpec(task, config, NO_SHAPING, model.image_size, keep=EXPERT_INFO,
+    keep = (*task_expert(task).reads, *OUTCOME_INFO)
+    return EnvSpec(task, config, NO_SHAPING, model.image_size, keep=keep,
                    sampler=LabelSampler, model=model)
 
 
@@ -158,11 +162,9 @@ class _Run:
                                      start_step=resumed.global_step)
         self.model = model.eval()
         self.rng = np.random.default_rng(options.seed + self.progress.update)
-        self.max_speed = max_speed_of(options.config, get_task(options.task))
-        self.expert = Expert(stop_distance=options.stop_distance,
-                             min_forward=options.min_forward, search_left=options.search_left,
-                             search_right=options.search_right,
-                             backoff_distance=options.backoff_distance)
+        self.max_speed = max_speed_of(options.config, load_task(options.task))
+        self.expert = task_expert(options.task, {name: getattr(options, name)
+                                                 for name in EXPERT_SETTINGS})
         self.envs: VectorEnv | None = None
 
     def iteration(self, data: Dataset, bar: tqdm) -> dict[str, Any]:

@@ -16,7 +16,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from jetbot_rt.train.expert import Expert
+from jetbot_rt.tasks import Expert
 from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.sampler import PolicySampler
 
@@ -49,7 +49,7 @@ class LabelSampler(PolicySampler):
             by_expert = bool(rng.random() < beta)
             done = False
             while not done:
-                label = expert.act(info["pose"], info["goal_xy"], float(info["speed"]))
+                label = expert.label(info)
                 if by_expert:
                     noisy = label + rng.normal(0.0, noise, 2).astype(np.float32)
                     action = np.clip(noisy, -1.0, 1.0)

@@ -9,7 +9,6 @@ rendered after that step is the next observation. ``reset`` renders the first fr
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -20,26 +19,11 @@ from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
 from jetbot_rt.runtime.actions import ActionPipeline
 from jetbot_rt.sim.config import SimConfig
-from jetbot_rt.sim.tasks import Scene, Task, get_task, outcome, sample_scene
+from jetbot_rt.tasks import Scene, Task, load_task
 
 POLICY_IMAGE_SIZE = 56
 """Side of the square camera image the trainer renders and its networks take (the one
 source of the training size): docs/SIM.md, "The render-size seam", says why 56."""
-MIN_REWARD_DISTANCE = 0.01
-"""m; the reward's 1/d is evaluated at no less than this (bodies never get this close)."""
-
-
-def forward_reward(distance: float) -> float:
-    """forward's reward, ``exp(1/d) - 30``."""
-    return math.exp(1.0 / max(distance, MIN_REWARD_DISTANCE)) - 30.0
-
-
-def task_reward(task: Task, result: dict[str, Any]) -> float:
-    """The registered env's reward: ``exp(1/d) - 30`` for forward; for the other
-    tasks 1 on the step that succeeds, else 0 (shaping for training lives in wrappers)."""
-    if task.name == "forward":
-        return forward_reward(result["distance"])
-    return 1.0 if result["is_success"] else 0.0
 
 
 def action_pipeline_of(config: Config, model_max_speed: float | None = None) -> ActionPipeline:
@@ -65,9 +49,12 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
     task's nominal pose (the blocks are still placed from the seed),
     ``options={"robot_pose": (x, y, yaw)}`` at a given one. A task with ``early_end`` ends
     (``terminated``) at its first successful step or once its goal has been pushed too far;
-    every task is truncated at ``episode_steps``. ``info``: ``distance``, ``block_shift``,
-    ``speed``, ``is_success``, ``failed`` (``jetbot_rt.sim.tasks.outcome``), ``aim_error``,
-    ``goal_xy``, ``pose``, ``duty``, ``sim_time``.
+    every task is truncated at ``episode_steps``. ``info``: the task's ``outcome`` (for
+    forward and seek ``distance``, ``block_shift``, ``speed``, ``is_success``, ``failed``,
+    ``aim_error``, ``goal_xy``), then ``pose``, ``duty``, ``sim_time``.
+
+    ``task``: a task's name (``jetbot_rt.tasks.load_task``: a built-in, ``FILE.py:Class``,
+    ``module:Class``, an installed plugin's) or a ``Task``.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 30}
@@ -87,7 +74,7 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
 
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise UsageError(f"unknown render_mode {render_mode!r} (known: rgb_array)")
-        self.task = task if isinstance(task, Task) else get_task(task)
+        self.task = load_task(task)
         self.config = config or Config()
         self.render_mode = render_mode
         self.start_noise = start_noise
@@ -112,33 +99,21 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.world = JetbotWorld(self.config.sim, image_size=(width, height))
         self._frame = np.zeros(self.observation_space.shape, dtype=np.uint8)
         self._steps = 0
-        self.scene = Scene(self.task.robot_pose, self.task.block_xy or (0.0, 0.0))
+        self.scene: Scene = self.world.scene
         self.sim_params: dict[str, Any] = {}
         """The last reset's [sim] knobs (``randomize.DRAWN``), as in its ``info``."""
 
     def _scene(self, options: dict[str, Any]) -> Scene:
-        scene = sample_scene(self.task, self.np_random,
-                             options.get("start_noise", self.start_noise))
+        scene = self.task.scene(self.np_random, bool(options.get("start_noise",
+                                                                 self.start_noise)))
         if "robot_pose" in options:
             x, y, yaw = (float(v) for v in options["robot_pose"])
-            scene = Scene((x, y, yaw), scene.goal_xy, scene.distractors)
+            scene = dataclasses.replace(scene, robot_pose=(x, y, yaw))
         return scene
-
-    def _aim_error(self) -> float:
-        """m; how far the block's centre lies from the robot's line of travel (the distance
-        to it when the block is beside or behind the robot). 0 when aimed straight at it."""
-        x, y, yaw = self.world.robot_pose()
-        bx, by, _ = self.world.block_position()
-        dx, dy = bx - x, by - y
-        bearing = math.atan2(dy, dx) - yaw
-        bearing = abs(math.atan2(math.sin(bearing), math.cos(bearing)))
-        return math.hypot(dx, dy) * math.sin(min(bearing, math.pi / 2))
 
     def _info(self, duties: tuple[float, float]) -> dict[str, Any]:
         return {
-            **outcome(self.task, self.world),
-            "aim_error": self._aim_error(),
-            "goal_xy": np.array(self.scene.goal_xy),
+            **self.task.outcome(self.scene, self.world),
             "pose": np.array(self.world.robot_pose()),
             "duty": np.array(duties),
             "sim_time": self.world.sim_time,
@@ -164,8 +139,7 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
 
         super().reset(seed=seed)
         self.scene = self._scene(options or {})
-        self.world.reset(robot_pose=self.scene.robot_pose, block_xy=self.scene.goal_xy,
-                         sim=self._episode_sim(), distractors=self.scene.distractors)
+        self.world.reset(scene=self.scene, sim=self._episode_sim())
         self.sim_params = sim_params(self.world.sim)
         self._steps = 0
         self._frame = self.world.frame()
@@ -180,8 +154,8 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self._steps += 1
         self._frame = self.world.frame()
         info = self._info(duties)
-        reward = task_reward(self.task, info)
-        terminated = self.task.early_end and (info["is_success"] or info["failed"])
+        reward = float(self.task.reward(info))
+        terminated = bool(self.task.terminated(info))
         truncated = not terminated and self._steps >= self.task.episode_steps
         return self._frame, reward, bool(terminated), truncated, info
 
@@ -192,6 +166,6 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.world.close()
 
 
-def make_task_env(task: str, config: Config | None = None, **kwargs: Any) -> JetbotEnv:
+def make_task_env(task: str | Task, config: Config | None = None, **kwargs: Any) -> JetbotEnv:
     """Picklable factory for vector envs (one PyBullet client per worker process)."""
     return JetbotEnv(task, config, **kwargs)

@@ -24,7 +24,8 @@ import numpy as np
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path
-from jetbot_rt.sim.tasks import get_task
+from jetbot_rt.errors import UsageError
+from jetbot_rt.tasks import BUILTIN, load_task
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
 from jetbot_rt.train.hyperparams import OptionError
 from jetbot_rt.train.vec_env import spawn_context
@@ -113,8 +114,8 @@ def run_episode(env: JetbotEnv, policy: Any, seed: int | None,
         "seed": seed,
         "return": total,
         "steps": steps,
-        "final_distance": float(info["distance"]),
-        "block_shift": float(info["block_shift"]),
+        "final_distance": float(info["distance"]) if "distance" in info else None,
+        "block_shift": float(info["block_shift"]) if "block_shift" in info else None,
         "success": bool(info["is_success"]),
     }
     if video is not None:
@@ -141,6 +142,11 @@ def _run_one(job: tuple[str, str, Config, int, str | None, str | None]) -> dict:
 
 def evaluate(
     policy_path: str | Path | None = None,
+def _stat(function: Any, values: list[float | None]) -> float | None:
+    """``function`` of ``values``, None for a task that reports no such value."""
+    return None if any(v is None for v in values) else float(function(values))
+
+
     *,
     task: str = "forward",
     episodes: int = 100,
@@ -159,7 +165,9 @@ def evaluate(
         raise OptionError("episodes", f"must be > 0, got {episodes}")
     if num_workers <= 0:
         raise OptionError("num_workers", f"must be > 0, got {num_workers}")
-    spec = get_task(task)
+    spec = load_task(task)
+    if policy_path is None and task not in BUILTIN:
+        raise UsageError(f"no bundled policy for task {task!r}; pass --policy FILE.onnx")
     config = config or Config()
     path = resolve_policy_path(policy_path, task)
     policy = load_policy(path, config, ablate=ablate)  # fail early, here, on a bad file
@@ -195,8 +203,8 @@ def evaluate(
         "episodes": episodes,
         "success_rate": float(np.mean([r["success"] for r in results])),
         "mean_return": float(np.mean([r["return"] for r in results])),
-        "mean_final_distance": float(np.mean([r["final_distance"] for r in results])),
-        "max_final_distance": float(np.max([r["final_distance"] for r in results])),
+        "mean_final_distance": _stat(np.mean, [r["final_distance"] for r in results]),
+        "max_final_distance": _stat(np.max, [r["final_distance"] for r in results]),
         "success_distance": spec.success_distance,
         "episode_steps": spec.episode_steps,
         "seed": seed,

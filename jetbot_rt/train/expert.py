@@ -1,81 +1,33 @@
-"""The privileged teacher: a scripted controller that reads the simulator's true state (the
-robot's pose and speed, the goal's position; never the image) and drives to the goal.
-
-DAgger (``dagger.py``) labels every frame the student sees with this controller's action.
-It is closed loop on the state, so the randomized wheel gains, dead-band and latencies need no
-model: a weak wheel shows as a bearing error that it turns away, a late stop as speed that
-moves the stop point out. Why these numbers: docs/TRAINING.md ("Training seek by DAgger").
+"""A task's privileged teacher (``Task.expert``), for DAgger: reads the simulator's state from
+the env's ``info``, never the image. ``Expert`` is the goal tasks' one (seek's), whose
+parameters the DAgger options tune (``hyperparams.DAggerArgs``).
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+import dataclasses
+from typing import Any
 
-import numpy as np
+from jetbot_rt.errors import UsageError
+from jetbot_rt.tasks import Expert as ExpertProtocol
+from jetbot_rt.tasks import Task, load_task
+from jetbot_rt.tasks.goal_expert import GoalExpert as Expert
+
+__all__ = ["Expert", "evaluate_expert", "task_expert"]
 
 
-@dataclass(frozen=True)
-class Expert:
-    stop_distance: float = 0.12
-    """m, axle to the goal's centre: command zero from here on. Success needs < 0.15 m; the
-    robot coasts 0.5-4.5 cm after the zero command (latency up to 0.1 s, motor lag 0.05 s, up
-    to ~0.3 m/s), touching the block at most without pushing it 3 cm. Why 3 cm inside 0.15 m:
-    the student's stop is blurred over a few cm (the randomized camera mount moves the
-    block's picture), and with 2 cm of margin most of its misses were stalls 0-1.5 cm
-    outside 0.15 m on dead-band robots (docs/TRAINING.md, "Measured")."""
-    stop_lead: float = 0.0
-    """s; moves the stop point out by speed * this. 0: the stop is a function of where the
-    block is, which the camera shows; speed a single frame hardly shows, and a stop that
-    depends on it gave the student contradictory labels (it stalled 2-4 cm short)."""
-    turn_gain: float = 2.5
-    """Turn command per rad of bearing error."""
-    forward_gain: float = 4.0
-    """Forward command per m beyond the stop point."""
-    search_bearing_deg: float = 30.0
-    """Beyond this bearing error the goal is out of the camera's view (its half field of view
-    is 41 degrees nominal, 34 at the narrowest randomized one): turn left (``search_left``,
-    ``search_right``), whichever side the goal is on. A student that sees only the frame
-    cannot know that side, and labels that said "turn toward it" averaged to zero there: it
-    stalled."""
-    search_left: float = -1.0
-    """The search's left wheel command."""
-    search_right: float = 0.3
-    """The search's right wheel command: with the left wheel's -1 a turn to the left that
-    backs away (a spin in place, (-1, 1), would sweep the robot's front into a block that
-    sits too close to be seen)."""
-    min_forward: float = 0.75
-    """The slowest forward command while driving: the dead-band (up to 0.3 of duty) eats
-    0.6 of the command at max_speed 0.5, so less would stall."""
-    backoff_distance: float = 0.10
-    """m; closer than this the expert backs away at ``backoff`` instead of waiting (0:
-    never). A robot that coasts this far (latency, a fast robot) has the block slipping below
-    the camera's view (a sliver of red at 0.10 m), a frame a student took for "goal out of
-    view": it searched, and pushed the block. Taught to back away there, it does not. 2 cm
-    inside ``stop_distance``: the band where it waits is 2 cm wide."""
-    backoff: float = -0.3
-    """The command of both wheels while backing away: slow, so that it stops again before
-    the stop distance (at -0.8 the expert itself hunted back and forth under latency)."""
-
-    def act(self, pose: np.ndarray, goal_xy: np.ndarray, speed: float) -> np.ndarray:
-        """``[left, right]`` in [-1, 1] for one robot."""
-        x, y, yaw = (float(v) for v in pose)
-        dx, dy = float(goal_xy[0]) - x, float(goal_xy[1]) - y
-        distance = math.hypot(dx, dy)
-        error = math.atan2(dy, dx) - yaw
-        error = math.atan2(math.sin(error), math.cos(error))
-        beyond = distance - (self.stop_distance + self.stop_lead * speed)
-        if distance < self.backoff_distance:
-            return np.full(2, self.backoff, dtype=np.float32)
-        if beyond <= 0.0:
-            return np.zeros(2, dtype=np.float32)
-        if abs(error) > math.radians(self.search_bearing_deg):
-            return np.array([self.search_left, self.search_right], dtype=np.float32)
-        turn = float(np.clip(self.turn_gain * error, -1.0, 1.0))
-        forward = float(np.clip(self.forward_gain * beyond, self.min_forward, 1.0))
-        forward *= max(math.cos(error), 0.0)
-        left, right = forward - turn, forward + turn
-        return np.clip(np.array([left, right], dtype=np.float32), -1.0, 1.0)
+def task_expert(task: str | Task, settings: dict[str, Any] | None = None) -> ExpertProtocol:
+    """``task``'s expert, its dataclass fields named in ``settings`` replaced (the DAgger
+    options named like them); ``UsageError`` when the task has none."""
+    loaded = load_task(task)
+    expert = loaded.expert()
+    if expert is None:
+        raise UsageError(f"task {loaded.short_name()!r} has no expert for DAgger (its "
+                         "Task.expert() returns None); train it with --algo ppo")
+    if settings and dataclasses.is_dataclass(expert):
+        known = {f.name for f in dataclasses.fields(expert)}
+        expert = dataclasses.replace(expert, **{k: v for k, v in settings.items() if k in known})
+    return expert
 
 
 def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek") -> float:
@@ -83,14 +35,13 @@ def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek")
     randomization on): what the student can at best reach."""
     from jetbot_rt.train.env import JetbotEnv
 
-    env, expert, successes = JetbotEnv(task), Expert(), 0
+    env, expert, successes = JetbotEnv(task), task_expert(task), 0
     try:
         for i in range(episodes):
             _, info = env.reset(seed=seed + i)
             done = False
             while not done:
-                action = expert.act(info["pose"], info["goal_xy"], info["speed"])
-                _, _, terminated, truncated, info = env.step(action)
+                _, _, terminated, truncated, info = env.step(expert.label(info))
                 done = terminated or truncated
             successes += bool(info["is_success"])
     finally:
@@ -98,8 +49,9 @@ def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek")
     return successes / episodes
 
 
-if __name__ == "__main__":  # python -m jetbot_rt.train.expert [EPISODES]
+if __name__ == "__main__":  # python -m jetbot_rt.train.expert [EPISODES] [TASK]
     import sys
 
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 100
-    print(f"expert success {evaluate_expert(count):.0%} over {count} seek episodes")
+    name = sys.argv[2] if len(sys.argv) > 2 else "seek"
+    print(f"expert success {evaluate_expert(count, task=name):.0%} over {count} {name} episodes")

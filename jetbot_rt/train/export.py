@@ -25,7 +25,7 @@ from jetbot_rt.config.sections import COLOR_ORDERS, LAYOUTS, PIXEL_RANGES
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.runtime.actions import DEFAULT_MAX_SPEED
 from jetbot_rt.runtime.policy import MAX_INPUT_SIDE, META_PREFIX
-from jetbot_rt.sim.tasks import TASKS
+from jetbot_rt.tasks import load_task
 from jetbot_rt.train.checkpoint import load_checkpoint
 from jetbot_rt.train.hyperparams import OptionError
 from jetbot_rt.train.model import ActorCritic
@@ -224,11 +224,12 @@ def export_policy(
                                  ("pixel_range", pixel_range, PIXEL_RANGES)):
         if value not in allowed:
             raise OptionError(name, f"must be one of {', '.join(allowed)}, got {value!r}")
-    if task is not None and task not in TASKS:
-        raise OptionError("task", f"must be one of {', '.join(sorted(TASKS))} or None, "
-                                  f"got {task!r}")
+    try:
+        loaded = load_task(task) if task is not None else None
+    except UsageError as exc:
+        raise OptionError("task", f"must be a task or None: {exc}") from None
     if max_speed is None:
-        max_speed = TASKS[task].max_speed if task is not None else DEFAULT_MAX_SPEED
+        max_speed = loaded.max_speed if loaded is not None else DEFAULT_MAX_SPEED
     if (isinstance(max_speed, bool) or not isinstance(max_speed, numbers.Real)
             or not 0.0 < max_speed <= 1.0):
         raise OptionError("max_speed", f"must be a number in (0, 1], got {max_speed!r}")

@@ -14,7 +14,7 @@ from typing import Any
 
 from jetbot_rt.config.sections import Config, from_dict, read_toml
 from jetbot_rt.errors import UsageError
-from jetbot_rt.sim.tasks import get_task
+from jetbot_rt.tasks import BUILTIN, load_task
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE
 from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.wrappers import REWARD_TRANSFORMS, Shaping
@@ -185,7 +185,7 @@ def usable_cores() -> int:
 @dataclass
 class PPOArgs:
     task: str = "forward"
-    """Task name (see ``jetbot_rt.sim.tasks.TASKS``)."""
+    """Task name (``jetbot_rt.tasks.load_task``: a built-in, FILE.py:Class, module:Class)."""
     total_timesteps: int = 40_000
     """Environment steps to collect in total, over all envs."""
     num_envs: int = field(default_factory=lambda: usable_cores())
@@ -308,25 +308,17 @@ class PPOArgs:
                                                   f"{value_text(self.reward_transform)}")
 
 
-TASK_DEFAULTS: dict[str, dict[str, Any]] = {
-    # A 6x6 stride-4 first layer: a quarter of the network's CPU (docs/TRAINING.md, "Speed").
-    "forward": {"model": {"first_kernel": 6, "first_stride": 4}},
-    # Why these numbers: docs/TRAINING.md ("Training seek").
-    "seek": {
-        "total_timesteps": 300_000, "out": "runs/seek", "reward_transform": "none",
-        "shaping_coef": 10.0, "aim_coef": 5.0, "success_bonus": 10.0, "fail_penalty": 5.0,
-        "learning_rate": 3e-4, "update_epochs": 8, "num_minibatches": 4,  # as measured
-        "model": {"init_mu": 0.3},
-    },
-}
-"""Per task, the PPOArgs values that differ from the dataclass defaults; the command line
-and a ``[train]`` table override them."""
+TASK_DEFAULTS: dict[str, dict[str, Any]] = {name: load().training for name, load in
+                                            BUILTIN.items()}
+"""Per built-in task, the PPOArgs values that differ from the dataclass defaults (each task's
+``Task.training``); the command line and a ``[train]`` table override them."""
 
 
 def ppo_args(task: str, overrides: dict[str, Any] | None = None) -> PPOArgs:
     """``PPOArgs`` for ``task``: dataclass defaults, then ``TASK_DEFAULTS[task]``, then
     ``overrides`` (a ``[train]`` table or command-line values; ``model`` a dict)."""
-    defaults = TASK_DEFAULTS.get(task, {})
+    loaded = load_task(task)
+    defaults = {"out": f"runs/{loaded.short_name()}", **loaded.training}
     return _build(PPOArgs, "training", task, defaults, overrides)
 
 
@@ -334,7 +326,7 @@ def _build(cls: Any, what: str, task: str, defaults: dict[str, Any],
            overrides: dict[str, Any] | None) -> Any:
     """``cls`` for ``task``: ``defaults`` then ``overrides`` (each with an optional
     ``model`` dict); unknown keys of either level are refused, then every value is checked."""
-    get_task(task)
+    load_task(task)
     values = {k: v for k, v in defaults.items() if k != "model"}
     model = dict(defaults.get("model", {}))
     for key, value in (overrides or {}).items():
@@ -382,7 +374,7 @@ def check_fields(options: Any, signed: tuple[str, ...] = ()) -> None:
 @dataclass
 class DAggerArgs:
     task: str = "seek"
-    """Task name; it needs an expert (seek)."""
+    """Task name; the task needs an expert (``Task.expert``: seek's)."""
     out: str = "runs/seek"
     """Directory for checkpoint.pt, policy.onnx, metrics.csv and learning_curve.png."""
     config: Config = field(default_factory=Config)
@@ -450,8 +442,9 @@ class DAggerArgs:
 
     def validate(self) -> None:
         """``OptionError`` for the first option out of range (before any env starts)."""
-        if self.task != "seek":
-            raise UsageError(f"DAgger has an expert for task seek only, not {self.task!r}")
+        if load_task(self.task).expert() is None:
+            raise UsageError(f"task {self.task!r} has no expert for DAgger (its Task.expert() "
+                             "returns None); train it with --algo ppo")
         check_fields(self, SIGNED)
         if self.workers not in (None, 0, self.num_envs):
             raise OptionError("workers", f"must be 0 or num_envs ({self.num_envs}), got "
@@ -462,7 +455,8 @@ class DAggerArgs:
 
 def dagger_args(task: str, overrides: dict[str, Any] | None = None) -> DAggerArgs:
     """``DAggerArgs`` for ``task`` with ``overrides`` (a ``[train]`` table, then flags)."""
-    return _build(DAggerArgs, "DAgger", task, {"out": f"runs/{task}"}, overrides)
+    return _build(DAggerArgs, "DAgger", task, {"out": f"runs/{load_task(task).short_name()}"},
+                  overrides)
 
 
 def read_config_file(path: str | None) -> tuple[Config, dict[str, Any]]:

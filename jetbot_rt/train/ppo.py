@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from jetbot_rt.sim.tasks import get_task
+from jetbot_rt.tasks import load_task
 from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
 from jetbot_rt.train.hyperparams import PPOArgs
@@ -180,7 +180,7 @@ class _Run:
             self.progress = Progress(resumed.global_step, resumed.update, resumed.wall_s,
                                      start_step=resumed.global_step)
         self.rng = np.random.default_rng(options.seed + self.progress.update)
-        self.max_speed = max_speed_of(options.config, get_task(options.task))
+        self.max_speed = max_speed_of(options.config, load_task(options.task))
         self.source = make_rollout_source(options, self.model, self.device)
         if resumed is not None and resumed.reward_rms is not None:
             rms, state = self.source.normalizer.return_rms, resumed.reward_rms

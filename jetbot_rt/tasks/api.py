@@ -1,0 +1,106 @@
+"""The task API: one class says what a task's scene holds, how it is drawn, and what counts.
+
+Subclass ``Task``, set its class attributes and write ``scene`` and ``outcome`` (``reward``,
+``terminated`` and ``expert`` have defaults). docs/TASKS.md is the tutorial;
+``examples/tasks/my_task.py`` a whole one. The simulator builds the scene and asks the task
+about it; the trainer adds its shaping in wrappers around the env, never here, so the
+evaluation is the task's alone. Observations are the camera image, actions the two wheel
+commands: a task decides neither.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Protocol, Tuple
+
+import numpy as np
+
+from jetbot_rt.tasks.scene import Scene
+
+
+class WorldView(Protocol):
+    """What a task may ask the simulated world (``jetbot_rt.sim.world.JetbotWorld``) in
+    ``outcome``. Names are the pieces' ``name``s."""
+
+    sim_time: float
+
+    def robot_pose(self) -> tuple[float, float, float]:
+        """x, y (m) and yaw (rad) of the robot's axle midpoint."""
+
+    def robot_speed(self) -> float:
+        """Horizontal speed (m/s)."""
+
+    def position(self, name: str) -> tuple[float, float, float]:
+        """A piece's centre now (m)."""
+
+    def shift(self, name: str) -> float:
+        """How far (m, on the floor) a piece moved since the scene was built."""
+
+    def distance(self, name: str) -> float:
+        """From the robot's axle midpoint to a piece's centre, in 3-D (m)."""
+
+    def touching(self, name: str | None = None) -> bool:
+        """Whether the robot touches the piece (None: any piece or the room's walls)."""
+
+
+class Expert(Protocol):
+    """A privileged teacher for DAgger: reads the simulator's state from the env's ``info``
+    (the keys in ``reads``), never the image. Must be picklable (it travels to env workers)."""
+
+    reads: tuple[str, ...]
+
+    def label(self, info: dict[str, Any]) -> np.ndarray:
+        """``[left, right]`` in [-1, 1]: the teacher's action in the state ``info`` shows."""
+
+
+class Task:
+    """A task. Instances are made without arguments (``load_task`` does ``Class()``)."""
+
+    name: ClassVar[str] = ""
+    """Short name: run directories (``runs/<name>``), messages. Default: the class name."""
+    description: ClassVar[str] = ""
+    """One line for ``jetbot-train --help``."""
+    episode_steps: ClassVar[int] = 450
+    """Time limit in control ticks (the env's ``truncated``; 15 s at 30 Hz)."""
+    max_speed: ClassVar[float] = 0.1
+    """Duty at |mu| = 1 the task trains with (exported into the policy's metadata). With
+    ``randomize`` it must lie above ``[randomize] deadband``'s top."""
+    randomize: ClassVar[bool] = False
+    """Domain randomization (``[randomize]`` ranges) unless the env or the config says."""
+    success_distance: ClassVar[float | None] = None
+    """m; for tasks whose success is "closer than this": the evaluation prints it beside the
+    mean final ``distance`` (the key ``outcome`` reports)."""
+    training: ClassVar[dict[str, Any]] = {}
+    """The trainer's option defaults for this task (``jetbot-train train`` flags spelled as
+    ``PPOArgs`` fields, ``model`` a dict); the command line and ``[train]`` override them."""
+
+    def scene(self, rng: np.random.Generator, start_noise: bool) -> Scene:
+        """One episode's scene, drawn from ``rng`` alone (episodes replay from their seed).
+        ``start_noise`` False: the robot at its nominal pose; draw the same numbers either way,
+        so that the pieces of a seed do not depend on it."""
+        raise NotImplementedError
+
+    def outcome(self, scene: Scene, world: WorldView) -> dict[str, Any]:
+        """The success test on the world as it is now: a dict with ``is_success`` (bool) and
+        the quantities it uses (numbers or arrays), which the env returns in ``info``."""
+        raise NotImplementedError
+
+    def reward(self, info: dict[str, Any]) -> float:
+        """The env's reward for a step (``info``: ``outcome``'s keys plus ``pose``, ``duty``,
+        ``sim_time``). Default: 1 on a successful step. Shaping is the trainer's business."""
+        return 1.0 if info["is_success"] else 0.0
+
+    def terminated(self, info: dict[str, Any]) -> bool:
+        """Whether the episode ends now (``terminated``). Default: never (time limit only)."""
+        return False
+
+    def expert(self) -> Expert | None:
+        """A privileged teacher for ``--algo dagger`` (the default algorithm when there is
+        one), or None."""
+        return None
+
+    @classmethod
+    def short_name(cls) -> str:
+        return cls.name or cls.__name__.lower()
+
+
+Pose = Tuple[float, float, float]
