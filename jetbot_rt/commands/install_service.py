@@ -42,6 +42,9 @@ USER_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,31}")
 # Characters systemd would read as something else inside a unit file line: every C0/C1
 # control (a newline starts a new line, so a new setting), and the Unicode line separators.
 REFUSED_CATEGORIES = ("Cc", "Zl", "Zp")
+LOCAL_FAMILIES = "RestrictAddressFamilies=AF_UNIX AF_NETLINK"
+NETWORK_FAMILIES = "AF_INET AF_INET6"
+"""What the unit adds when the config serves the monitor ([monitor] listen)."""
 FILE_LIMIT = 1 << 20
 """The largest unit or passwd file read back (both are a few KiB)."""
 
@@ -75,13 +78,15 @@ def run(args: argparse.Namespace) -> int:
     check_user(args.user, root)
     executable = find_executable()
 
-    unit_text = render_unit(executable, args.user, config)
     unit_path = staged(root, UNIT_DIR / UNIT_NAME)
     config_path = staged(root, config)
+    monitor = None
     if config_path.exists() or config_path.is_symlink():
         from jetbot_rt.config.sections import load_config
 
-        load_config(config_path)  # an existing config is kept: it must be one the service reads
+        # an existing config is kept: it must be one the service reads
+        monitor = load_config(config_path).monitor.listen
+    unit_text = render_unit(executable, args.user, config, network=monitor is not None)
     unit_action = "wrote"
     if unit_path.exists() or unit_path.is_symlink():
         if read_text(unit_path, "the unit") == unit_text:
@@ -99,6 +104,9 @@ def run(args: argparse.Namespace) -> int:
 
     print(f"{unit_action} {unit_path}")
     print(f"{config_action} {config_path}")
+    if monitor is not None:
+        print(f"note: [monitor] listen = {monitor!r} in the config, so the unit allows IP "
+              f"sockets ({NETWORK_FAMILIES}); without it, only local ones")
     if protect_home(executable, config) != "yes":
         print("note: this installation lives under /home or /root, so the unit uses "
               "ProtectHome=read-only; a venv in /opt/jetbot-rt keeps home directories hidden")
@@ -189,9 +197,11 @@ def shebang_interpreter(executable: Path) -> PurePosixPath | None:
     return PurePosixPath(words[0]) if words else None
 
 
-def render_unit(executable: Path, user: str, config: PurePosixPath) -> str:
+def render_unit(executable: Path, user: str, config: PurePosixPath, *,
+                network: bool = False) -> str:
     """The unit: the template with its placeholders filled in its settings, never in its
-    comments (which name the placeholders to say what the template is)."""
+    comments (which name the placeholders to say what the template is). ``network``: the
+    config serves the monitor, so ``RestrictAddressFamilies`` also allows IP sockets."""
     if USER_NAME.fullmatch(user) is None:
         raise UsageError(f"--user {user!r}: not a user name a systemd unit can take")
     values = {
@@ -208,6 +218,9 @@ def render_unit(executable: Path, user: str, config: PurePosixPath) -> str:
                 line = line.replace(placeholder, value)
         lines.append(line)
     text = "".join(lines)
+    if network:
+        assert LOCAL_FAMILIES in text, "the unit template's RestrictAddressFamilies changed"
+        text = text.replace(LOCAL_FAMILIES, f"{LOCAL_FAMILIES} {NETWORK_FAMILIES}")
     settings = [ln for ln in text.splitlines() if not ln.lstrip().startswith(("#", ";"))]
     left = [p for p in PLACEHOLDERS if any(p in ln for ln in settings)]
     assert not left, f"the unit template has a placeholder this code does not fill: {left}"

@@ -393,19 +393,24 @@ class MonitorHandler(BaseHTTPRequestHandler):
 
     def _paced(self) -> Any:
         """Yields once per ``interval`` while serving; counts the slots a slow client missed
-        (its last write took longer than the interval) as dropped frames."""
+        (a write took longer than the interval, or timed out) as dropped frames."""
         server = self.server
         interval = server.interval
         next_at = time.monotonic()
-        while not server.closing.is_set():
-            yield
-            next_at += interval
-            now = time.monotonic()
-            if now > next_at:
-                missed = int((now - next_at) // interval) + 1
-                server.count("frames_dropped", missed)
-                next_at += missed * interval
-            server.closing.wait(max(0.0, next_at - time.monotonic()))
+        try:
+            while not server.closing.is_set():
+                yield
+                next_at += interval
+                now = time.monotonic()
+                if now > next_at:
+                    missed = int((now - next_at) // interval) + 1
+                    server.count("frames_dropped", missed)
+                    next_at += missed * interval
+                server.closing.wait(max(0.0, next_at - time.monotonic()))
+        finally:  # also a write that timed out: the slots it sat through are dropped
+            late = time.monotonic() - next_at
+            if late > interval:
+                server.count("frames_dropped", int(late // interval))
 
     def _mjpeg(self, view: str) -> None:
         boundary = "jetbotrtframe"
