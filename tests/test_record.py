@@ -107,7 +107,8 @@ def test_replay_imports_no_motor_or_camera_code(sim_run):
     script = ("import sys\nfrom jetbot_rt.cli import main\n"
               f"code = main(['replay', {str(rec)!r}, '--json'])\n"
               "print(sorted(m for m in sys.modules if m.split('.')[-1] in "
-              "('i2c', 'motors', 'gst_camera', 'real', 'sim', 'smbus2', 'pybullet')))\n"
+              "('i2c', 'motors', 'gst_camera', 'real', 'backend', 'world', 'smbus2', "
+              "'pybullet')))\n"
               "sys.exit(code)")
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=120)
