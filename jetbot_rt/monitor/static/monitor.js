@@ -29,11 +29,12 @@ function drawTrajectory(points) {
   if (!points || points.length < 1) return;
   canvas.hidden = false;
   const ctx = canvas.getContext("2d");
-  let xs = points.map((p) => p[0]), ys = points.map((p) => p[1]);
-  const minX = Math.min(...xs, 0) - 0.2, maxX = Math.max(...xs, 0) + 0.2;
-  const minY = Math.min(...ys, 0) - 0.2, maxY = Math.max(...ys, 0) + 0.2;
-  const scale = Math.min(canvas.width / (maxX - minX), canvas.height / (maxY - minY));
-  const px = (p) => [(p[0] - minX) * scale, canvas.height - (p[1] - minY) * scale];
+  // the path's bounding box, at least 1 m across, centred: the robot's moves stay visible
+  const xs = points.map((p) => p[0]), ys = points.map((p) => p[1]);
+  const cx = (Math.min(...xs) + Math.max(...xs)) / 2, cy = (Math.min(...ys) + Math.max(...ys)) / 2;
+  const span = Math.max(1, Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys)) * 1.2;
+  const scale = Math.min(canvas.width, canvas.height) / span;
+  const px = (p) => [canvas.width / 2 + (p[0] - cx) * scale, canvas.height / 2 - (p[1] - cy) * scale];
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   ctx.strokeStyle = "#4493f8";
   ctx.lineWidth = 2;
@@ -80,8 +81,9 @@ function end(s) {
   banner.hidden = false;
   banner.className = e.fault ? "fault" : "";
   banner.textContent = "The run ended" + (e.fault ? " with a safe stop (fault)" : "") + ": " +
-    (e.reason || "stopped") + " — exit " + e.exit_code + "; motors at zero.";
+    (e.reason || "stopped") + " — exit " + e.exit_code + ".";
   $("stop").disabled = true;
+  $("stop").textContent = "STOPPED";
   $("state").textContent = "ended";
   events.close();
 }
