@@ -130,7 +130,7 @@ def test_train_algo_dagger_writes_the_run_directory(tmp_path, capsys):
 def test_dagger_needs_an_expert_and_refuses_other_algorithms_flags(tmp_path, capsys):
     forward = train_here(capsys, "train", "--task", "forward", "--algo", "dagger", "--out",
                         str(tmp_path / "f"))
-    assert forward.returncode == 2 and "seek only" in forward.stderr
+    assert forward.returncode == 2 and "has no expert for DAgger" in forward.stderr
     mixed = train_here(capsys, "train", "--task", "seek", "--gamma", "0.9", "--out",
                        str(tmp_path / "m"))
     assert mixed.returncode == 2

@@ -32,6 +32,8 @@ import torch
 from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import UsageError, first_line
+from jetbot_rt.tasks import available
+from jetbot_rt.tasks.loader import is_code_reference
 from jetbot_rt.train.hyperparams import ModelConfig, OptionError, value_text
 from jetbot_rt.train.model import ActorCritic
 
@@ -276,8 +278,9 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
     # A task's name, never loaded here (a checkpoint is no one's command to run code): a run
     # resumes only with the task it names (check_resumable).
     if not isinstance(task, str) or not 0 < len(task) <= MAX_TASK_NAME or \
-            not task.isprintable():
-        raise _Defect(f"task must be a task's name, got {value_text(task)}")
+            not task.isprintable() or not (task in available() or is_code_reference(task)):
+        raise _Defect(f"task must be one of {', '.join(available())} or FILE.py:Class, "
+                      f"module:Class, got {value_text(task)}")
     algo = state.get("algo", "ppo")
     if not isinstance(algo, str) or algo not in ALGOS:
         raise _Defect(f"algo must be one of {', '.join(ALGOS)}, got {value_text(algo)}")
