@@ -70,7 +70,7 @@ def test_symlog_and_bad_transform():
 
 def test_ppo_args_precedence_dataclass_task_overrides():
     forward = ppo_args("forward")
-    assert forward.shaping_coef == PPOArgs().shaping_coef
+    assert forward.shaping_coef == TASK_DEFAULTS["forward"]["shaping_coef"]
     seek = ppo_args("seek")
     assert seek.total_timesteps == TASK_DEFAULTS["seek"]["total_timesteps"]
     assert seek.model.init_mu == TASK_DEFAULTS["seek"]["model"]["init_mu"]

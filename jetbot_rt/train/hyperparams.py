@@ -252,19 +252,21 @@ class PPOArgs:
     """"symlog": learn from sign(r) * ln(1 + |r|) of the task reward (then shaping, scale
     and clip); "none": the task reward as is. The forward reward spans -27 .. 1e4+;
     compressed, a step closer is visible at any distance."""
-    shaping_coef: float = 1000.0
-    """Progress shaping ``c * (d - d')`` per step, d the robot-goal distance in m (it sums
+    shaping_coef: float = 0.0
+    """Progress shaping ``c * (d - d')`` per step, d the env's ``distance`` (forward and seek:
+    the robot-goal distance in m; forward trains with 1000, seek with 10) (it sums
     to ``c * (d_start - d_end)`` over an episode, so it ranks whole episodes as the distance
     they close does). Far from the block forward's reward is nearly flat (-27.0 at 0.9 m,
     -24.7 at 0.6 m): without this, a random policy's wheel commands leave no trace in the
-    returns that the value function's error does not swamp. 0 turns it off."""
-    aim_coef: float = 300.0
+    returns that the value function's error does not swamp. 0 (the default for a task that
+    sets none) turns it off."""
+    aim_coef: float = 0.0
     """Aim shaping ``k * (e - e')`` per step, e the env's ``aim_error``: how far (m) the block
     lies off the robot's line of travel. Progress alone barely rewards steering (heading
     8 degrees off costs 1 % of the progress per step) and the payoff of aiming right -- the
     huge reward at the block -- comes ~300 steps later, beyond gamma's horizon; this pays for
     a correction the step it is made. Potential-based, it sums to ``k * (e_start - e_end)``
-    and cannot be farmed by wiggling. 0 turns it off."""
+    and cannot be farmed by wiggling. forward trains with 300, seek with 5; 0 turns it off."""
     success_bonus: float = 0.0
     """Added on the step that ends an episode with success (tasks with early_end)."""
     fail_penalty: float = 0.0

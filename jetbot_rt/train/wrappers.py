@@ -47,6 +47,9 @@ class PotentialShaping(gym.Wrapper):
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
+        if self.key not in info:  # a task of the user's that reports no such quantity
+            raise UsageError(f"the trainer's shaping reads info[{self.key!r}], which this "
+                             f"task's outcome does not report (set its coefficient to 0)")
         self._last = float(info[self.key])
         return obs, info
 
