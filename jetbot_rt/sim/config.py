@@ -78,8 +78,9 @@ class SimKnobs:
     """Seeds the scene (where the task puts its blocks, as the env's ``reset(seed=...)``),
     the camera's image noise (``image_noise``) and the one draw of ``[randomize]``."""
     task: Optional[str] = None
-    """The scene to build: a task name (``forward``, ``seek``). Default: the policy's
-    ``jetbot_rt.task`` metadata, else ``forward``."""
+    """The scene to build: a task's name (``forward``, ``seek``, ``FILE.py:Class``,
+    ``module:Class``, an installed plugin's; docs/TASKS.md). Default: the policy's
+    ``jetbot_rt.task`` metadata (a built-in or plugin name only), else ``forward``."""
     wheel_gain: List[float] = field(default_factory=lambda: [1.0, 1.0], metadata=meta(
         pair(0, 2, open_low=True),
         randomized((0.8, 1.2), 0.1, 2, "custom", doc="Factor, drawn for each wheel apart."),
