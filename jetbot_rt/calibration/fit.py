@@ -15,18 +15,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
 from jetbot_rt.calibration.measure import Geometry
 
 NAMES = ("gain_left", "gain_right", "deadband_left", "deadband_right", "latency", "tau",
-         "range0", "heading0")
-LOW = np.array([0.1, 0.1, 0.0, 0.0, 0.0, 0.0, 0.05, -1.0])
-HIGH = np.array([500.0, 500.0, 0.95, 0.95, 0.6, 0.5, 5.0, 1.0])
+         "range0", "heading0", "track")
+LOW = np.array([0.1, 0.1, 0.0, 0.0, 0.0, 0.0, 0.05, -1.0, 0.02])
+HIGH = np.array([500.0, 500.0, 0.95, 0.95, 0.6, 0.5, 5.0, 1.0, 1.0])
 SIGMA_RANGE = 0.003
 SIGMA_BEARING = 0.004
+REST_WEIGHT = 5.0
 """Residual scales (m, rad): what the marker's corners give at 0.5 m in a 320x180 frame."""
 
 
@@ -43,14 +43,14 @@ class Data:
 
 @dataclass
 class Result:
-    values: Dict[str, float]
-    sigma: Dict[str, float]
+    values: dict[str, float]
+    sigma: dict[str, float]
     rms_range_mm: float
     rms_bearing_deg: float
     frames: int
 
 
-def predict(p: np.ndarray, data: Data, geometry: Geometry, dt: float) -> Tuple[np.ndarray,
+def predict(p: np.ndarray, data: Data, geometry: Geometry, dt: float) -> tuple[np.ndarray,
                                                                                 np.ndarray]:
     g = p[0:2]
     db = p[2:4]
@@ -81,7 +81,7 @@ def predict(p: np.ndarray, data: Data, geometry: Geometry, dt: float) -> Tuple[n
     omega[:, 0], omega[:, 1] = out_l, out_r
     mid = (omega[1:] + omega[:-1]) / 2 * geometry.wheel_radius
     speed = mid.sum(axis=1) / 2
-    turn = (mid[:, 1] - mid[:, 0]) / geometry.track
+    turn = (mid[:, 1] - mid[:, 0]) / p[8]
     heading = heading0 + np.concatenate(([0.0], np.cumsum(turn * dt)))
     mid_heading = (heading[1:] + heading[:-1]) / 2
     x = -range0 + np.concatenate(([0.0], np.cumsum(speed * np.cos(mid_heading) * dt)))
@@ -98,8 +98,16 @@ def predict(p: np.ndarray, data: Data, geometry: Geometry, dt: float) -> Tuple[n
 def _residuals(p: np.ndarray, data: Data, geometry: Geometry, dt: float,
                seen: np.ndarray) -> np.ndarray:
     reach, bearing = predict(p, data, geometry, dt)
-    return np.concatenate(((reach[seen] - data.reach[seen]) / SIGMA_RANGE,
-                           (bearing[seen] - data.bearing[seen]) / SIGMA_BEARING))
+    weight = _weights(data)[seen]
+    return np.concatenate(((reach[seen] - data.reach[seen]) / SIGMA_RANGE * weight,
+                           (bearing[seen] - data.bearing[seen]) / SIGMA_BEARING * weight))
+
+
+def _weights(data: Data) -> np.ndarray:
+    """The frames before the first step weigh REST_WEIGHT times more: they tell where the
+    robot started, and a model that misses some of the motion must not move the start."""
+    moved = np.cumsum(np.abs(data.duties).sum(axis=1)) > 0
+    return np.where(moved, 1.0, REST_WEIGHT)
 
 
 def _jacobian(p: np.ndarray, r0: np.ndarray, *args: object) -> np.ndarray:
@@ -113,7 +121,7 @@ def _jacobian(p: np.ndarray, r0: np.ndarray, *args: object) -> np.ndarray:
 
 
 def _levenberg_marquardt(p: np.ndarray, args: tuple, iterations: int = 40
-                         ) -> Tuple[np.ndarray, float, np.ndarray]:
+                         ) -> tuple[np.ndarray, float, np.ndarray]:
     r = _residuals(p, *args)
     cost = float(r @ r)
     damping = 1e-2
@@ -147,7 +155,8 @@ def fit(data: Data, geometry: Geometry, max_duty: float) -> Result:
     dt = period / 6
     first = np.flatnonzero(seen)[0]
     start = np.array([20.0, 20.0, 0.05, 0.05, 0.05, 0.05,
-                      data.reach[first] + geometry.camera_offset, -data.bearing[first]])
+                      data.reach[first] + geometry.camera_offset, -data.bearing[first],
+                      geometry.track])
     args = (data, geometry, dt, seen)
     best = None
     for latency in (0.0, 0.1, 0.2):
@@ -168,8 +177,6 @@ def fit(data: Data, geometry: Geometry, max_duty: float) -> Result:
     except np.linalg.LinAlgError:
         sigma = np.full(len(p), np.inf)
     reach, bearing = predict(p, data, geometry, dt)
-    half = len(jac) // 2
-    _ = half
     return Result(
         values=dict(zip(NAMES, (float(v) for v in p))),
         sigma=dict(zip(NAMES, (float(v) for v in sigma))),
@@ -180,7 +187,7 @@ def fit(data: Data, geometry: Geometry, max_duty: float) -> Result:
     )
 
 
-def sim_table(result: Result, geometry: Geometry) -> List[Tuple[str, str, str]]:
+def sim_table(result: Result, geometry: Geometry) -> list[tuple[str, str, str]]:
     """The ``[sim]`` keys (name, TOML value, comment): the stronger wheel's gain is
     ``motor_gain`` and its ``wheel_gain`` 1 (a weak wheel is the one below 1); one dead-band
     (the mean of the wheels', the sim has one); the whole command-to-image latency in
@@ -203,7 +210,8 @@ def sim_table(result: Result, geometry: Geometry) -> List[Tuple[str, str, str]]:
         ("latency", f"{v['latency']:.4f}", f"+- {s['latency']:.4f} s: command to image, all of "
          "it (motor and camera)"),
         ("camera_latency", "0.0", "in latency above: the camera alone cannot split them"),
-        ("motor_tau", f"{v['tau']:.4f}", f"+- {s['tau']:.4f} s"),
+        ("motor_tau", f"{v['tau']:.4f}", f"+- {s['tau']:.4f} s (fitted track "
+         f"{v['track']:.4f} +- {s['track']:.4f} m, nominal {geometry.track:g})"),
     ]
 
 
@@ -225,7 +233,3 @@ def to_toml(result: Result, geometry: Geometry, source: str) -> str:
               f"latency = [{max(0.0, latency - 0.03):.3f}, {min(1.0, latency + 0.05):.3f}]",
               "camera_latency = [0.0, 0.0]", ""]
     return "\n".join(lines)
-
-
-def _unused(_: Sequence[float]) -> None:
-    return None

@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
-from typing import Optional, Tuple
 
 import cv2
 import numpy as np
@@ -22,7 +20,7 @@ SENSOR_ASPECT = 16 / 9
 
 def marker_png() -> Path:
     """The printable page: marker id 7 of DICT_4X4_50 and one white cell around it."""
-    return Path(str(resources.files("jetbot_rt") / "data" / "aruco-4x4-id7.png"))
+    return Path(__file__).resolve().parents[1] / "data" / "aruco-4x4-id7.png"
 
 
 @dataclass(frozen=True)
@@ -48,13 +46,15 @@ def camera_matrix(width: int, height: int, vfov_deg: float) -> np.ndarray:
     tan_v = math.tan(math.radians(vfov_deg) / 2)
     fx = (width / 2) / (SENSOR_ASPECT * tan_v)
     fy = (height / 2) / tan_v
-    return np.array([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=np.float64)
+    # OpenCV puts pixel centres on integers: the image centre is (width - 1) / 2
+    return np.array([[fx, 0, (width - 1) / 2], [0, fy, (height - 1) / 2], [0, 0, 1]],
+                    dtype=np.float64)
 
 
 class MarkerMeter:
     """Finds the marker in a frame; ``measure`` gives (range m, bearing rad, right positive)."""
 
-    def __init__(self, geometry: Geometry, frame_size: Tuple[int, int]) -> None:
+    def __init__(self, geometry: Geometry, frame_size: tuple[int, int]) -> None:
         self.geometry = geometry
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -65,7 +65,7 @@ class MarkerMeter:
         self._object = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0],
                                  [-half, -half, 0]], dtype=np.float64)
 
-    def measure(self, image: np.ndarray) -> Optional[Tuple[float, float]]:
+    def measure(self, image: np.ndarray) -> tuple[float, float] | None:
         corners, ids, _ = self._detector.detectMarkers(image)
         if ids is None:
             return None

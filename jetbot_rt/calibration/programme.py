@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Tuple
 
 import cv2
 import numpy as np
@@ -30,8 +30,8 @@ STEP_S = 0.25
 """Each step out (and back): at 0.3 duty on one wheel the sim's robot turns about 25 degrees."""
 
 
-def steps(max_duty: float) -> List[Step]:
-    out: List[Step] = [(0.0, 0.0, SETTLE_S)]
+def steps(max_duty: float) -> list[Step]:
+    out: list[Step] = [(0.0, 0.0, SETTLE_S)]
 
     def there_and_back(left: float, right: float, seconds: float = STEP_S) -> None:
         out.extend([(left, right, seconds), (0.0, 0.0, SETTLE_S / 2),
@@ -75,7 +75,7 @@ class Programme:
 
     max_speed = 1.0
 
-    def __init__(self, geometry: Geometry, limits: Limits, frame_size: Tuple[int, int],
+    def __init__(self, geometry: Geometry, limits: Limits, frame_size: tuple[int, int],
                  rate_hz: float) -> None:
         self.geometry = geometry
         self.limits = limits
@@ -85,13 +85,14 @@ class Programme:
         self.meter = MarkerMeter(geometry, frame_size)
         self._steps = steps(limits.max_duty)
         self._ends = np.cumsum([s for _, _, s in self._steps])
-        self.metadata: Dict[str, str] = {"jetbot_rt.calibration": repr(self.describe())}
-        self._clock: Optional[Callable[[], float]] = None
+        self.metadata: dict[str, str] = {"jetbot_rt.calibration": repr(self.describe())}
+        self._clock: Callable[[], float] | None = None
         self._t0 = 0.0
-        self._start_range: Optional[float] = None
+        self._start_range: float | None = None
         self._last_seen = 0.0
+        self._done: Callable[[], None] = lambda: None
 
-    def describe(self) -> Dict[str, object]:
+    def describe(self) -> dict[str, object]:
         return {"programme": "calibrate", "geometry": vars(self.geometry),
                 "limits": vars(self.limits), "frame_size": [self.spec.width, self.spec.height]}
 
@@ -99,7 +100,7 @@ class Programme:
         return cv2.resize(image, (self.spec.width, self.spec.height),
                           interpolation=cv2.INTER_AREA)
 
-    def arm(self, simulated: bool) -> None:
+    def arm(self, simulated: bool, done: Callable[[], None]) -> None:
         """From now on ``infer`` plays the steps; time counts ticks in the simulation (a late
         tick there is no lost time), the monotonic clock on the robot."""
         if simulated:
@@ -114,8 +115,9 @@ class Programme:
             self._clock = time.monotonic
         self._t0 = self._clock()
         self._last_seen = 0.0
+        self._done = done
 
-    def command(self, t: float) -> Tuple[float, float]:
+    def command(self, t: float) -> tuple[float, float]:
         index = int(np.searchsorted(self._ends, t, side="right"))
         if index >= len(self._steps):
             return (0.0, 0.0)
@@ -132,10 +134,12 @@ class Programme:
                                  "docs/CALIBRATION.md)")
             return np.zeros(2, dtype=np.float32)
         t = self._clock() - self._t0
+        if t >= self._ends[-1]:
+            self._done()  # an orderly end: the run's stop phase follows
         self._watch(t, seen)
         return np.array(self.command(t), dtype=np.float32)
 
-    def _watch(self, t: float, seen: Optional[Tuple[float, float]]) -> None:
+    def _watch(self, t: float, seen: tuple[float, float] | None) -> None:
         limits = self.limits
         if seen is None:
             if t - self._last_seen > limits.lost_s:

@@ -14,7 +14,6 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import List
 
 import numpy as np
 
@@ -117,7 +116,9 @@ class Arm(Phase):
 
     def enter(self) -> None:
         robot, _ = self.connect.connected
-        self.rt.programme.arm(robot.simulated)
+        latch = self.rt.latch
+        self.rt.programme.arm(robot.simulated, lambda: latch.trip(
+            "calibration programme done", fault=False))
 
 
 class Calibration(Runtime):
@@ -127,7 +128,7 @@ class Calibration(Runtime):
         for name in ("policy", "max_speed", "telemetry", "rate"):
             setattr(args, name, None)
         args.gui = False
-        args.duration = duration(limits.max_duty) + 0.5
+        args.duration = None  # the programme ends the drive (``Arm``)
         args.record = str(expand_path(args.record))  # known here: the fit reads it back
         super().__init__(args)
         self.config.actions.max_speed = 1.0  # the programme's duties are the duties
@@ -136,17 +137,18 @@ class Calibration(Runtime):
         geometry = _geometry(args, sim.camera_height, sim.camera_vfov_deg)
         self.programme = Programme(geometry, limits, FRAME_SIZE, self.config.loop.rate_hz)
 
-    def phases(self) -> List[Phase]:
+    def phases(self) -> list[Phase]:
         """``run``'s phases with the programme in ``Load``'s place (every phase that reads
         the policy is given it), the page placed once connected (sim), armed before the drive."""
         load = LoadProgramme(self.programme)
-        phases: List[Phase] = []
+        phases: list[Phase] = []
+        connect: Connect | None = None
         for phase in super().phases():
             if hasattr(phase, "load"):
                 phase.load = load  # type: ignore[attr-defined]
             if isinstance(phase, Load):
                 phase = load
-            if isinstance(phase, Drive):
+            if isinstance(phase, Drive) and connect is not None:
                 phases.append(Arm(self, connect))
             phases.append(phase)
             if isinstance(phase, Connect):
@@ -178,11 +180,11 @@ def read_data(path: str) -> tuple[Data, Geometry, float]:
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UsageError(f"{path}: meta.json's calibration is unreadable ({exc})") from None
     meter = MarkerMeter(geometry, (width, height))
+    simulated = recording.meta.get("backend") == "sim"
     rows: list[list[float]] = []
     for record, image in recording.ticks_with_frames():
-        # the sim's time is the world's (after the tick's step); on the robot, the tick's
-        t = (float(record["sim_time"]) - period if "sim_time" in record
-             else float(record["t"]))
+        # the sim's time is one period per tick (a late tick there loses no time)
+        t = (int(record["tick"]) - 1) * period if simulated else float(record["t"])
         seen = meter.measure(image) if image is not None else None
         cmd = record.get("cmd") or [0.0, 0.0]
         rows.append([t, float(cmd[0]), float(cmd[1]),

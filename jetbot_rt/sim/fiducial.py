@@ -9,8 +9,7 @@ never have it, and ``JetbotWorld.reset`` (a rebuilt scene) removes it.
 from __future__ import annotations
 
 import math
-from importlib import resources
-
+from jetbot_rt.calibration.measure import marker_png
 from jetbot_rt.sim.backend import SimRobot
 from jetbot_rt.sim.pybullet_import import import_pybullet
 
@@ -19,10 +18,6 @@ p = import_pybullet()
 PAGE_CELLS = 8
 """The PNG's width in marker cells: 6 for the marker (its black border included), 2 white."""
 MARKER_CELLS = 6
-
-
-def marker_page_png() -> str:
-    return str(resources.files("jetbot_rt") / "data" / "aruco-4x4-id7.png")
 
 
 def place_marker(robot: SimRobot, distance: float, marker_size: float,
@@ -46,7 +41,7 @@ def place_marker(robot: SimRobot, distance: float, marker_size: float,
                                  normals=[[-math.cos(yaw), -math.sin(yaw), 0]] * 4,
                                  physicsClientId=client)
     body = p.createMultiBody(0, -1, visual, (cx, cy, centre_height), physicsClientId=client)
-    texture = p.loadTexture(marker_page_png(), physicsClientId=client)
+    texture = p.loadTexture(str(marker_png()), physicsClientId=client)
     p.changeVisualShape(body, -1, textureUniqueId=texture, rgbaColor=(1, 1, 1, 1),
                         physicsClientId=client)
     robot.step(0.0)  # nothing moves; the camera's next frame shows the page

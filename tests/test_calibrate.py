@@ -1,0 +1,70 @@
+"""jetbot-rt calibrate: the drive in the simulator with a known [sim] truth, fitted back from
+the camera alone, recovers each value within the stated tolerances (docs/CALIBRATION.md)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import tomllib
+
+pytest.importorskip("pybullet")
+
+TRUTHS = {
+    "weak left wheel, dead-band, 100 ms": {
+        "wheel_gain": [0.75, 1.0], "deadband": 0.12, "latency": 0.05, "camera_latency": 0.05},
+    "weak right wheel, small dead-band, 150 ms": {
+        "wheel_gain": [1.0, 0.8], "deadband": 0.08, "latency": 0.15},
+}
+TOLERANCE = {"motor_gain": 0.08, "wheel_gain": 0.04, "deadband": 0.02, "latency": 0.015}
+"""motor_gain: relative; the others absolute (latency in s: the sim counts it in 1/120 s)."""
+
+
+def _toml(table: dict[str, object]) -> str:
+    return "[sim]\n" + "".join(f"{k} = {v!r}\n" for k, v in table.items())
+
+
+def _calibrate(*args: str, cwd: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "jetbot_rt.cli", "calibrate", *args],
+                            cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_calibrate_in_the_sim_recovers_each_truth_within_tolerance(tmp_path: Path) -> None:
+    runs = {}
+    for i, (name, truth) in enumerate(TRUTHS.items()):
+        (tmp_path / f"truth{i}.toml").write_text(_toml(truth))
+        runs[name] = _calibrate("--backend", "sim", "--config", f"truth{i}.toml", "--yes",
+                                "--record", f"rec{i}", "--out", f"fit{i}.toml", cwd=tmp_path)
+    for i, (name, truth) in enumerate(TRUTHS.items()):
+        out, err = runs[name].communicate(timeout=240)
+        assert runs[name].returncode == 0, (name, out[-2000:], err[-2000:])
+        fitted = tomllib.loads((tmp_path / f"fit{i}.toml").read_text())["sim"]
+        gain = truth.get("motor_gain", 20.0)
+        assert abs(fitted["motor_gain"] / gain - 1) < TOLERANCE["motor_gain"], (name, fitted)
+        for got, want in zip(fitted["wheel_gain"], truth["wheel_gain"]):
+            assert abs(got - want) < TOLERANCE["wheel_gain"], (name, fitted)
+        assert abs(fitted["deadband"] - truth["deadband"]) < TOLERANCE["deadband"], (name, fitted)
+        total = truth["latency"] + truth.get("camera_latency", 0.0)
+        assert abs(fitted["latency"] - total) < TOLERANCE["latency"], (name, fitted)
+        assert fitted["camera_latency"] == 0.0
+        # --fit re-fits the recording without driving: the same numbers
+        again = _calibrate("--fit", f"rec{i}", cwd=tmp_path)
+        text, _ = again.communicate(timeout=120)
+        assert again.returncode == 0
+        assert tomllib.loads(text)["sim"] == fitted
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--backend", "sim", "--max-duty", "0.9", "--yes"], "--max-duty must be in (0, 0.6]"),
+    (["--backend", "sim", "--marker-size", "nan", "--yes"], "--marker-size must be in"),
+    (["--fit", "nowhere"], "nowhere"),
+    ([], "give --backend"),
+])
+def test_calibrate_refuses_bad_input_in_one_line_with_exit_2(tmp_path: Path, args: list[str],
+                                                              says: str) -> None:
+    run = _calibrate(*args, cwd=tmp_path)
+    out, err = run.communicate(timeout=60)
+    assert run.returncode == 2, (out, err)
+    assert says in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
