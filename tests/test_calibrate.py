@@ -56,6 +56,16 @@ def test_calibrate_in_the_sim_recovers_each_truth_within_tolerance(tmp_path: Pat
         assert tomllib.loads(text)["sim"] == fitted
 
 
+def test_calibrate_stops_with_exit_3_when_the_marker_is_lost(tmp_path: Path) -> None:
+    (tmp_path / "covered.toml").write_text("[sim]\nblackout = [1.5, 5.0]\n")
+    run = _calibrate("--backend", "sim", "--config", "covered.toml", "--yes", "--record", "rec",
+                     cwd=tmp_path)
+    out, err = run.communicate(timeout=120)
+    assert run.returncode == 3, (out, err)
+    assert "calibration marker lost" in out + err
+    assert "motors       confirmed zero" in out + err
+
+
 @pytest.mark.parametrize("args, says", [
     (["--backend", "sim", "--max-duty", "0.9", "--yes"], "--max-duty must be in (0, 0.6]"),
     (["--backend", "sim", "--marker-size", "nan", "--yes"], "--marker-size must be in"),

@@ -177,6 +177,9 @@ def read_data(path: str) -> tuple[Data, Geometry, float]:
         max_duty = float(described["limits"]["max_duty"])
         width, height = (int(v) for v in recording.meta["frame_size"])
         period = 1.0 / float(recording.meta["rate_hz"])
+        if not all(math.isfinite(v) and v >= 0 for v in vars(geometry).values()) or not (
+                0 < max_duty <= 1 and 0 < period < 1 and width > 0 and height > 0):
+            raise ValueError("a value out of range")
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UsageError(f"{path}: meta.json's calibration is unreadable ({exc})") from None
     meter = MarkerMeter(geometry, (width, height))

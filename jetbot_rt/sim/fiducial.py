@@ -9,7 +9,8 @@ never have it, and ``JetbotWorld.reset`` (a rebuilt scene) removes it.
 from __future__ import annotations
 
 import math
-from jetbot_rt.calibration.measure import marker_png
+from pathlib import Path
+
 from jetbot_rt.sim.backend import SimRobot
 from jetbot_rt.sim.pybullet_import import import_pybullet
 
@@ -18,6 +19,7 @@ p = import_pybullet()
 PAGE_CELLS = 8
 """The PNG's width in marker cells: 6 for the marker (its black border included), 2 white."""
 MARKER_CELLS = 6
+PAGE_PNG = Path(__file__).resolve().parents[1] / "data" / "aruco-4x4-id7.png"
 
 
 def place_marker(robot: SimRobot, distance: float, marker_size: float,
@@ -41,7 +43,7 @@ def place_marker(robot: SimRobot, distance: float, marker_size: float,
                                  normals=[[-math.cos(yaw), -math.sin(yaw), 0]] * 4,
                                  physicsClientId=client)
     body = p.createMultiBody(0, -1, visual, (cx, cy, centre_height), physicsClientId=client)
-    texture = p.loadTexture(str(marker_png()), physicsClientId=client)
+    texture = p.loadTexture(str(PAGE_PNG), physicsClientId=client)
     p.changeVisualShape(body, -1, textureUniqueId=texture, rgbaColor=(1, 1, 1, 1),
                         physicsClientId=client)
     robot.step(0.0)  # nothing moves; the camera's next frame shows the page
