@@ -98,9 +98,14 @@ class Task:
         one), or None."""
         return None
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if not cls.__dict__.get("name"):  # each class its own, never its base's
+            cls.name = cls.__name__.lower()
+
     @classmethod
     def short_name(cls) -> str:
-        return cls.name or cls.__name__.lower()
+        return cls.name
 
 
 Pose = Tuple[float, float, float]
