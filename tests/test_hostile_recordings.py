@@ -8,10 +8,12 @@ through the ``jetbot-rt`` console script, and the classes behind them in-process
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import resource
 import shutil
+import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 
@@ -29,6 +31,7 @@ from recording_fixtures import (
 
 from jetbot_rt.commands import report
 from jetbot_rt.errors import UsageError
+from jetbot_rt.recording import reader
 from jetbot_rt.recording.reader import LINE_BYTES, TICKS_BYTES, Recording
 
 HANG_S = 60.0
@@ -325,7 +328,7 @@ def test_malformed_recordings_end_to_end_exit_2_with_one_line(rec, case):
 def test_a_recorded_policy_override_that_is_not_one_is_refused_by_replay(rec):
     edit_meta(lambda m: m["config"]["policy"].__setitem__("threads", 10**6))(rec)
     assert_refused(jetbot_rt("replay", str(rec), timeout=HANG_S),
-                   "meta.json: config.policy: [policy] threads must be 1..64")
+                   "meta.json: config.policy: [policy] threads must be a number in [1, 64]")
 
 
 def _file_size_limit(limit: int) -> Callable[[], None]:
@@ -366,8 +369,89 @@ def test_a_link_planted_in_the_record_directory_is_never_written_through(tmp_pat
     victim.write_text("precious\n")
     rec = tmp_path / "rec"
     rec.mkdir()
-    monkeypatch.setattr(recorder_module, "prepare_directory", lambda path: None)  # the race
+    monkeypatch.setattr(recorder_module, "open_directory",  # the race: checked, then planted
+                        lambda path: os.open(path, os.O_RDONLY | os.O_DIRECTORY))
     (rec / name).symlink_to(victim)
     with pytest.raises(UsageError, match=f"cannot record to {rec}: .*File exists"):
         Recorder(rec, {"source": "test"}, (32, 32), 30.0, t0=0.0)
     assert victim.read_text() == "precious\n"
+
+
+# ---- memory: a record holds only what is read, and the records held are bounded ----------
+
+def retained_by(read: Callable[[], object]) -> tuple[object, int]:
+    """What ``read`` returns and the bytes it keeps allocated (tracemalloc), once it is done."""
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        result = read()
+        gc.collect()
+        return result, tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+
+
+def test_unknown_keys_and_long_texts_are_not_kept_so_a_records_memory_is_bounded(rec):
+    """The review's case in small: lines full of ``{}`` (20 times their size as Python
+    objects) under an unknown key, and texts of 200 KB. Before, each record kept it all."""
+    pad = "[" + ",".join(["{}"] * 20_000) + "]"
+    lines = (rec / "ticks.jsonl").read_text().splitlines()
+    spoiled = [line[:-1] + f',"pad":{pad},"more":{{"a":{pad}}}}}' for line in lines]
+    spoiled.append(json.dumps({"event": "note", "t": 1.0, "reason": "r" * 200_000}))
+    (rec / "ticks.jsonl").write_text("\n".join(spoiled) + "\n")
+    records, retained = retained_by(lambda: reader.read_records(rec / "ticks.jsonl", True))
+    assert isinstance(records, list) and len(records) == len(spoiled)
+    bound = len(records) * (reader.RECORD_BYTES + 3 * reader.TEXT_BYTES)
+    assert retained <= bound, (retained, bound)  # before: ~60 MB for these 23 records
+    assert all("pad" not in r and "more" not in r for r in records)
+    assert len(records[-1]["reason"]) == reader.MAX_TEXT
+
+
+def test_the_memory_the_records_hold_is_counted_not_underestimated(rec):
+    """``RecordChecker.held`` is what the budget counts: it must not be less than the
+    records really hold (tracemalloc), here for a recording as a run writes it."""
+    _records, retained = retained_by(lambda: reader.read_records(rec / "ticks.jsonl", True))
+    checker = reader.RecordChecker(True)
+    for record in read_lines(rec):
+        checker.check(record)
+    assert retained <= checker.held * 1.1 + 4096, (retained, checker.held)
+
+
+def test_more_records_than_the_memory_budget_is_one_line_exit_2(rec, monkeypatch):
+    lines = (rec / "ticks.jsonl").read_text()
+    events = "".join(json.dumps({"event": "e", "t": 0}) + "\n" for _ in range(3000))
+    (rec / "ticks.jsonl").write_text(lines + events)
+    monkeypatch.setattr(reader, "RECORDS_BYTES", 200_000)
+    with pytest.raises(UsageError, match=r"ticks.jsonl line \d+: more records than 0 MiB"):
+        Recording.open(rec)
+
+
+@pytest.mark.parametrize("kind", ["link", "file", "not empty", "link parent"])
+def test_a_record_directory_that_is_a_link_a_file_or_not_empty_is_refused(tmp_path, kind):
+    """A link is refused even when it is ours (the second-uid cases, where it matters, are in
+    test_hostile_user.py): nothing is written where it points."""
+    from jetbot_rt.recording.recorder import Recorder
+
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    rec = tmp_path / "rec"
+    if kind == "link":
+        rec.symlink_to(target)
+    elif kind == "file":
+        rec.write_text("")
+    elif kind == "not empty":
+        rec.mkdir()
+        (rec / "old.txt").write_text("")
+    else:
+        (tmp_path / "parent").symlink_to(target)
+        rec = tmp_path / "parent" / "rec"  # our own link among the parents: followed
+        Recorder(rec, {"source": "test"}, (32, 32), 30.0, t0=0.0).close(timeout=None)
+        assert sorted(p.name for p in (target / "rec").iterdir()) == [
+            "frames.mkv", "meta.json", "summary.json", "ticks.jsonl"]
+        return
+    expected = {"link": "is a symbolic link", "file": "exists and is not a directory",
+                "not empty": "exists and is not empty"}[kind]
+    with pytest.raises(UsageError, match=f"record directory {rec} {expected}"):
+        Recorder(rec, {"source": "test"}, (32, 32), 30.0, t0=0.0)
+    assert list(target.iterdir()) == []

@@ -485,3 +485,139 @@ def test_the_listener_socket_helper_really_accepts(tmp_path: Path) -> None:
         assert listener.finish() == (1, 0)
     finally:
         listener.kill()
+
+
+# ---- a record directory another user planted ------------------------------------------------
+
+
+@needs_root
+@needs_gst
+@pytest.mark.parametrize("planted", ["link", "their directory", "their link as a parent"])
+def test_a_record_directory_another_user_planted_is_refused_before_the_board_is_touched(
+        tmp_path: Path, planted: str) -> None:
+    """H owns a shared directory and plants ``rec`` there: a link to a directory only root can
+    write, an empty directory of H's own, or a link as its parent. Root's ``run --record``
+    refuses in one line (exit 2) before it opens the board, and writes nothing anywhere."""
+    hostile = unused_uid()
+    theirs = shared_dir(hostile)
+    victim_dir = tmp_path / "rootonly"
+    victim_dir.mkdir(mode=0o700)
+    plant = {"link": "os.symlink(sys.argv[2], sys.argv[1] + '/rec')",
+             "their directory": "os.mkdir(sys.argv[1] + '/rec')",
+             "their link as a parent": "os.symlink(sys.argv[2], sys.argv[1] + '/sub')"}[planted]
+    record = theirs / ("sub/rec" if planted == "their link as a parent" else "rec")
+    config = tmp_path / "dry.toml"
+    config.write_text(real_config(live_camera("h25record")))
+    (tmp_path / "rt").mkdir(mode=0o700)
+    try:
+        assert as_user(hostile, f"import os, sys\n{plant}\n", str(theirs),
+                       str(victim_dir)).returncode == 0
+        result = subprocess.run(
+            [sys.executable, "-c", CLI, "run", "--backend", "real", "--config", str(config),
+             "--board-emulator", str(tmp_path / "chip.json"), "--duration", "1",
+             "--record", str(record)], capture_output=True, text=True, timeout=60, cwd="/",
+            env=dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "rt")))
+        left = sorted(p.name for p in theirs.iterdir())
+    finally:
+        shutil.rmtree(theirs)
+    assert result.returncode == 2, result.stdout + result.stderr
+    (line,) = result.stderr.splitlines()
+    expected = {"link": "is a symbolic link", "their directory": f"belongs to uid {hostile}",
+                "their link as a parent": f"is a symbolic link of uid {hostile}"}[planted]
+    assert f"record directory {record}" in line and expected in line, line
+    assert list(victim_dir.iterdir()) == []
+    assert left == ["rec" if planted != "their link as a parent" else "sub"]
+    assert not (tmp_path / "chip.json").exists()  # the board was never opened
+
+
+# ---- the emulator's owner lock: no more open than its state file ------------------------------
+
+TRY_LOCK = ("import fcntl, os, sys\n"
+            "try:\n"
+            "    fd = os.open(sys.argv[1], os.O_RDONLY | os.O_NOFOLLOW)\n"
+            "    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)\n"
+            "except OSError as exc:\n"
+            "    sys.exit(exc.strerror)\n")
+
+
+@needs_root
+def test_the_owner_lock_root_creates_is_the_state_files_owners_and_closed_to_others() -> None:
+    """The service's user made the state file (0600); root (a ``check``, a ``run``) creates
+    the ``.owner`` lock beside it: the service's, mode 0600, so another user cannot open it
+    to take the lock (it was 0666: any user could refuse every run and fail every stop)."""
+    service, hostile = unused_uid(), unused_uid()
+    work = shared_dir(service)
+    os.chmod(work, 0o1777)  # as /tmp
+    chip_file = work / "chip.json"
+    try:
+        assert as_user(service, "import os, sys\nos.umask(0o077)\n"
+                       "from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator\n"
+                       "PCA9685Emulator(0x60, state_file=sys.argv[1])\n", str(chip_file),
+                       modules=("jetbot_rt.testing.pca9685_emulator",)).returncode == 0
+        from jetbot_rt.hal.ownership import BoardLock
+
+        BoardLock.acquire(1, str(chip_file)).release()
+        st = os.lstat(f"{chip_file}.owner")
+        taken = as_user(hostile, TRY_LOCK, f"{chip_file}.owner", modules=("fcntl",))
+        mine = as_user(service, TRY_LOCK, f"{chip_file}.owner", modules=("fcntl",))
+    finally:
+        shutil.rmtree(work)
+    assert (st.st_uid, stat.S_IMODE(st.st_mode)) == (service, 0o600)
+    assert taken.returncode == 1 and "Permission denied" in taken.stderr
+    assert mine.returncode == 0, mine.stderr
+
+
+@needs_root
+@needs_gst
+@pytest.mark.parametrize("planted", ["their file, locked", "a link", "ours, open to all"])
+def test_an_owner_lock_file_another_user_planted_refuses_run_and_leaves_stop_confirmed(
+        tmp_path: Path, planted: str) -> None:
+    """In a directory anyone writes (the documented dry run's /tmp), H makes ``chip.json.owner``
+    first and holds a lock on it, or plants a link there. Root's ``run`` refuses in one line
+    (exit 2) before it opens the board; root's ``stop`` puts the board off and confirms it
+    (it said "NOT confirmed": H's lock looked like a runtime that would not end)."""
+    hostile = unused_uid()
+    work = shared_dir(0)
+    os.chmod(work, 0o1777)
+    chip_file, lock_file = work / "chip.json", work / "chip.json.owner"
+    hold = ("import fcntl, os, sys, time\n"
+            "fd = os.open(sys.argv[1], os.O_RDONLY | os.O_CREAT, 0o666)\n"
+            "fcntl.flock(fd, fcntl.LOCK_EX)\nprint('ready', flush=True)\nsys.stdin.read()\n")
+    holder = None
+    if planted == "ours, open to all":  # what the earlier code made: root's, 0666
+        os.close(os.open(lock_file, os.O_CREAT | os.O_RDONLY, 0o600))
+        os.chmod(lock_file, 0o666)
+    elif planted == "a link":
+        assert as_user(hostile, "import os, sys\nos.symlink('/etc/passwd', sys.argv[1])\n",
+                       str(lock_file)).returncode == 0
+    else:
+        holder = subprocess.Popen(command(hostile, hold, str(lock_file), modules=("fcntl",)),
+                                  cwd="/", text=True,
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "ready"
+    env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path))
+    try:
+        config = tmp_path / "dry.toml"
+        config.write_text(real_config(live_camera("h25owner")))
+        run = subprocess.run([sys.executable, "-c", CLI, "run", "--backend", "real", "--config",
+                              str(config), "--board-emulator", str(chip_file), "--duration",
+                              "1"], capture_output=True, text=True, timeout=60, cwd="/",
+                             env=env)
+        mode = stat.S_IMODE(os.lstat(lock_file).st_mode)
+        stop = subprocess.run([sys.executable, "-c", CLI, "stop", "--board-emulator",
+                               str(chip_file)], capture_output=True, text=True,
+                              timeout=HANG_S, cwd="/", env=env)
+        chip = PCA9685Emulator(state_file=chip_file)
+    finally:
+        if holder is not None:
+            holder.communicate("", timeout=30)
+        shutil.rmtree(work)
+    assert stop.returncode == 0, stop.stdout + stop.stderr
+    assert chip.all_off() and chip.sleeping
+    if planted == "ours, open to all":  # closed to others, then ours to use
+        assert mode == 0o660 and run.returncode == 0, run.stdout + run.stderr
+        return
+    assert run.returncode == 2, run.stdout + run.stderr
+    (line,) = run.stderr.splitlines()
+    expected = "a symbolic link" if planted == "a link" else f"owned by uid {hostile}"
+    assert f"{lock_file} is {expected}" in line, line

@@ -211,12 +211,13 @@ def read_json(path: PathLike, what: str, limit: int, *, follow_links: bool = Tru
         raise UsageError(f"{what} {shown(path)} is not valid JSON: {exc}") from None
 
 
-def create_new(path: PathLike, mode: int = 0o666) -> int:
-    """A descriptor (read and write) of a file created now at ``path``: never an existing
-    file, never through a link planted there (``O_CREAT|O_EXCL|O_NOFOLLOW``). ``OSError``
-    (``FileExistsError`` for anything already at ``path``)."""
+def create_new(path: PathLike, mode: int = 0o666, *, dir_fd: int | None = None) -> int:
+    """A descriptor (read and write) of a file created now at ``path`` (relative to the
+    directory ``dir_fd`` if given): never an existing file, never through a link planted
+    there (``O_CREAT|O_EXCL|O_NOFOLLOW``). ``OSError`` (``FileExistsError`` for anything
+    already at ``path``)."""
     return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
-                   mode)
+                   mode, dir_fd=dir_fd)
 
 
 @contextlib.contextmanager

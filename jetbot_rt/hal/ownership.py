@@ -16,9 +16,11 @@ purpose (``ExecStopPost`` runs after it); systemd removes the service's director
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import os
+import stat
 from pathlib import Path
 
 from jetbot_rt.errors import UsageError
@@ -38,25 +40,87 @@ def _open(path: Path) -> int:
     flags = os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK | os.O_NOCTTY
     if not path.name.endswith(".owner"):
         return os.open(path, flags)
-    # The emulator's: never through a link (root would create the file a link names), and no
-    # O_CREAT on an existing file (protected_regular refuses it to root in /tmp when another
-    # user owns the file); a missing one is created lockable by every user.
-    flags |= os.O_NOFOLLOW
+    return _open_emulator_lock(path, flags | os.O_NOFOLLOW)
+
+
+def _open_emulator_lock(path: Path, flags: int) -> int:
+    """``<state file>.owner``: whoever can open it can take the lock, so it grants what the
+    state file grants and no more: its owner, its mode (``rw`` bits of user and group, never
+    others). Never through a link (root would create the file a link names), and no
+    ``O_CREAT`` on an existing file (``protected_regular`` refuses that to root in /tmp when
+    another user owns it). An existing one must be a regular file of this user, root or the
+    state file's owner; one open to others is closed to them first (or refused). OSError:
+    cannot open; UsageError: refused, saying why."""
+    state = path.with_name(path.name[: -len(".owner")])
     try:
-        return os.open(path, flags)
+        state_st: os.stat_result | None = os.stat(state, follow_symlinks=False)
+    except OSError:
+        state_st = None
+    trusted = {os.geteuid(), 0} | ({state_st.st_uid} if state_st else set())
+    wanted = (stat.S_IMODE(state_st.st_mode) if state_st else 0o666 & ~_umask()) & 0o660
+    try:
+        fd = os.open(path, flags)
     except FileNotFoundError:
-        pass
-    old = os.umask(0)
+        try:
+            fd = os.open(path, flags | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:  # another process created it just now
+            fd = os.open(path, flags)
+        else:
+            _give_like(fd, path, state_st, wanted)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UsageError(f"{path} is a symbolic link (refused: the emulator's owner lock "
+                             "must be a file of its own; remove the link)") from None
+        raise
     try:
-        return os.open(path, flags | os.O_CREAT, 0o666)
-    finally:
-        os.umask(old)
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_uid not in trusted:
+            what = "not a regular file" if not stat.S_ISREG(st.st_mode) else \
+                f"owned by uid {st.st_uid}, not by this user, root or the state file's owner"
+            raise UsageError(f"{path} is {what} (refused: whoever can open it can take the "
+                             "board's owner lock; remove it)")
+        if st.st_mode & 0o007:
+            try:
+                os.fchmod(fd, stat.S_IMODE(st.st_mode) & 0o770)
+            except OSError:
+                raise UsageError(f"{path} can be opened by every user (mode "
+                                 f"{stat.S_IMODE(st.st_mode):04o}) and is not ours to change "
+                                 "(refused: anyone could take the board's owner lock)") from None
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it (``os.umask`` would, for every thread)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    return 0o022
+
+
+def _give_like(fd: int, path: Path, state_st: os.stat_result | None, mode: int) -> None:
+    """A lock file created now: the state file's owner and mode; with no state file yet, the
+    emulator's rule (a root process gives it to its directory's owner)."""
+    os.fchmod(fd, mode)
+    if os.geteuid() != 0:
+        return
+    owner = state_st
+    if owner is None:
+        with contextlib.suppress(OSError):
+            parent = os.stat(path.parent)
+            owner = parent if parent.st_uid != 0 else None
+    if owner is not None and owner.st_uid != 0:
+        with contextlib.suppress(OSError):
+            os.fchown(fd, owner.st_uid, owner.st_gid)
 
 
 def owner_pids(path: Path) -> list[int]:
     """Pids holding a ``flock`` on ``path``, from ``/proc/locks`` (empty if none or unknown)."""
     try:
-        st = path.stat()
+        st = os.stat(path, follow_symlinks=False)
         locks = Path("/proc/locks").read_text()
     except OSError:
         return []
@@ -77,8 +141,8 @@ def owned(path: Path) -> bool:
     Authoritative where ``/proc/locks`` cannot name the holder (another pid namespace)."""
     try:
         fd = _open(path)
-    except OSError:
-        return False  # no such bus: nobody can own it
+    except (OSError, UsageError):
+        return False  # no such bus, or a lock file no runtime of ours would take
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except OSError as exc:

@@ -7,6 +7,12 @@ before anything uses it: types, finite numbers within bounds, tick times and num
 go forward, frame indices that only go forward and never past their tick. Whatever is wrong is
 one ``UsageError`` naming the file, the line and the key.
 
+A record keeps only the keys replay and report read, each checked, with a text cut to
+``MAX_TEXT`` characters: unknown keys (a line's worth of ``{}`` is 20 times its size in Python
+objects) never stay in memory. The records held are counted (``RecordChecker.held``, each
+record's size) and more than ``RECORDS_BYTES`` of them is refused: a file within its
+cap, however it is written, costs at most that plus one line being parsed.
+
 A recording cut short (the process killed, the disk full) is read as far as it goes: a
 half-written last line (no newline) is skipped, and ticks whose frame never reached the video
 have none.
@@ -17,6 +23,7 @@ from __future__ import annotations
 import math
 import os
 import stat
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,10 +41,17 @@ from jetbot_rt.runtime.policy import MAX_INPUT_SIDE
 META_BYTES = 4 * MIB
 """``meta.json`` and ``summary.json``: a few KB (the config, the policy's metadata)."""
 TICKS_BYTES = 128 * MIB
-"""``ticks.jsonl`` or a telemetry file: about 300 bytes a tick, so some 4 hours at 30 Hz. Every
-record is held in memory (about 1 GB at the cap), which a Jetson Nano's 4 GB still has."""
+"""``ticks.jsonl`` or a telemetry file: about 230 bytes a tick, so some 5 hours at 30 Hz."""
 LINE_BYTES = 1 * MIB
-"""One record; the longest we write (the ``end`` event with the run's summary) is a few KB."""
+"""One record; the longest we write (the ``end`` event with the run's summary) is a few KB.
+Parsing one costs at most ~25 MiB for the moment it takes (1 MiB of ``{},``)."""
+RECORDS_BYTES = 512 * MIB
+"""The records held in memory (``RecordChecker.held``): a recording of ours at ``TICKS_BYTES``
+holds ~400 MiB; a Jetson Nano has 4 GB."""
+MAX_TEXT = 1000
+"""Characters kept of a record's text (a state, an event's name or reason)."""
+SHARED_TEXTS = 1000
+"""Distinct short texts (states, event names) held once and shared by the records."""
 MAX_TIME_S = 1e9
 """``t``: 30 years of run time; a larger one is not a time a run had."""
 MAX_MS = 1e9
@@ -84,10 +98,11 @@ def _pair(record: dict[str, Any], key: str, bound: float, optional: bool = False
         _number({f"{key}[{index}]": value[index]}, f"{key}[{index}]", -bound, bound)
 
 
-def _text(record: dict[str, Any], key: str, optional: bool = True) -> None:
+def _text(record: dict[str, Any], key: str, optional: bool = True) -> str | None:
     value = record.get(key)
     if not (isinstance(value, str) or (value is None and optional)):
         raise Invalid(f"{key} must be text, got {_kind(value)}")
+    return value
 
 
 def _table(record: dict[str, Any], key: str) -> dict[str, Any]:
@@ -146,10 +161,32 @@ def check_summary(summary: Any) -> dict[str, Any]:
     return summary
 
 
+TICK_KEYS = ("t", "tick", "state", "mu", "cmd", "frame_age_ms", "infer_ms", "tick_ms",
+             "overruns", "frame")
+EVENT_KEYS = ("t", "event", "reason", "fault", "success", "cmd")
+
+
+def _record_bound() -> int:
+    """Bytes a kept record can hold besides its texts, at most: a dict of every tick key, two
+    lists of two floats, a large number per key, its slot in the list."""
+    number = max(sys.getsizeof(2.0**60), sys.getsizeof(2**60))
+    pair = sys.getsizeof([0.5, 0.5]) + 2 * number
+    return (sys.getsizeof(dict.fromkeys(TICK_KEYS)) + 2 * pair + len(TICK_KEYS) * number
+            + sys.getsizeof([None]))
+
+
+RECORD_BYTES = _record_bound()
+TEXT_BYTES = sys.getsizeof("\U0001f600" * MAX_TEXT)
+"""A kept text at most (``MAX_TEXT`` characters of 4 bytes)."""
+
+
 class RecordChecker:
-    """Checks records in file order. Tick records: ``t`` and ``tick`` only go forward (events
-    come from other threads and are not ordered); ``frame`` indices only go forward and never
-    past the number of ticks before them (a tick writes at most one frame)."""
+    """Checks records in file order and returns each as a new dict of the keys replay and
+    report read. Tick records: ``t`` and ``tick`` only go forward (events come from other
+    threads and are not ordered); ``frame`` indices only go forward and never past the
+    number of ticks before them (a tick writes at most one frame). ``held``: the bytes the
+    records returned so far hold, counted with ``sys.getsizeof`` (at most ``RECORD_BYTES``
+    each, plus their texts' ``TEXT_BYTES``; texts shared are counted once)."""
 
     def __init__(self, with_frames: bool) -> None:
         self.with_frames = with_frames
@@ -157,18 +194,48 @@ class RecordChecker:
         self.last_t = -math.inf
         self.last_tick = -1
         self.last_frame = -1
+        self.held = 0
+        self._texts: dict[str, str] = {}
+
+    def _kept_text(self, value: str | None) -> str | None:
+        """``value`` cut to ``MAX_TEXT``; a short one shared with the records before."""
+        if value is None:
+            return None
+        if len(value) > MAX_TEXT:
+            value = value[:MAX_TEXT - 3] + "..."
+        shared = self._texts.get(value)
+        if shared is not None:
+            return shared
+        self.held += sys.getsizeof(value)
+        if len(value) <= 40 and len(self._texts) < SHARED_TEXTS:
+            self._texts[value] = value
+        return value
 
     def check(self, record: Any) -> dict[str, Any]:
+        kept = self._checked(record)
+        held = sys.getsizeof(kept) + 8  # and its slot in the list of records
+        for key, value in list(kept.items()):
+            if key in ("state", "event", "reason"):
+                kept[key] = self._kept_text(value)  # counts itself, unless shared
+            elif isinstance(value, list):
+                held += sys.getsizeof(value) + sys.getsizeof(value[0]) + sys.getsizeof(value[1])
+            else:
+                held += sys.getsizeof(value)
+        self.held += held
+        return kept
+
+    def _checked(self, record: Any) -> dict[str, Any]:
         if not isinstance(record, dict):
             raise Invalid(f"a record must be a JSON object, got {_kind(record)}")
         if "event" in record:
             _text(record, "event", optional=False)
             _number(record, "t", 0.0, MAX_TIME_S)
             _text(record, "reason")
-            if not isinstance(record.get("fault", False), bool):
-                raise Invalid(f"fault must be true or false, got {_kind(record.get('fault'))}")
+            for key in ("fault", "success"):  # success: an evaluated episode's end
+                if not isinstance(record.get(key, False), bool):
+                    raise Invalid(f"{key} must be true or false, got {_kind(record.get(key))}")
             _pair(record, "cmd", 1.0, optional=True)
-            return record
+            return _kept(record, EVENT_KEYS)
         if "tick" not in record:
             raise Invalid("neither a tick record (no tick) nor an event (no event)")
         t = _number(record, "t", 0.0, MAX_TIME_S)
@@ -192,7 +259,18 @@ class RecordChecker:
                 self.last_frame = frame
         self.last_t, self.last_tick = t, tick
         self.ticks += 1
-        return record
+        return _kept(record, TICK_KEYS if self.with_frames else TICK_KEYS[:-1])
+
+
+def _kept(record: dict[str, Any], keys: tuple[str, ...]) -> dict[str, Any]:
+    """A new dict of ``keys`` that ``record`` has (checked: numbers, bools, None, texts or
+    lists of two numbers, copied so that nothing else of the parsed line stays alive)."""
+    kept = {}
+    for key in keys:
+        if key in record:
+            value = record[key]
+            kept[key] = [float(value[0]), float(value[1])] if isinstance(value, list) else value
+    return kept
 
 
 def read_records(path: Path, with_frames: bool) -> list[dict[str, Any]]:
@@ -219,6 +297,10 @@ def read_records(path: Path, with_frames: bool) -> list[dict[str, Any]]:
             records.append(checker.check(record))
         except Invalid as exc:
             raise UsageError(f"{shown(path)} line {number}: {exc}") from None
+        if checker.held > RECORDS_BYTES:
+            raise UsageError(f"{shown(path)} line {number}: more records than "
+                             f"{RECORDS_BYTES // MIB} MiB of memory holds (a recording of "
+                             f"ours of {TICKS_BYTES // MIB} MiB needs ~400)")
     return records
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import fcntl
 import hashlib
 import json
@@ -27,6 +28,7 @@ import mmap
 import os
 import platform
 import select
+import stat
 import subprocess
 import sys
 import time
@@ -105,15 +107,50 @@ def expand_path(template: str) -> Path:
     return Path(template.replace("{time}", stamp))
 
 
-def prepare_directory(path: Path) -> None:
-    """Create ``path``; an existing non-empty directory (an earlier recording) is refused."""
+def open_directory(path: Path) -> int:
+    """The record directory, opened (``O_DIRECTORY|O_NOFOLLOW``): created here unless it
+    exists. An existing one must be an empty directory of this user or root, not a symbolic
+    link (someone else's link could name any directory: root would write there); a link among
+    its parents must be this user's or root's too. Every file of the recording is created
+    relative to the descriptor, so a rename of the directory's name afterwards redirects
+    nothing. ``UsageError`` says what is refused."""
     try:
-        if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        _no_planted_link(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with contextlib.suppress(FileExistsError):
+            os.mkdir(path)  # never through a link at ``path``: that is EEXIST
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError as exc:
+        if os.path.islink(path):
+            raise UsageError(f"record directory {path} is a symbolic link (refused: name the "
+                             "directory itself)") from None
+        if exc.errno == errno.ENOTDIR:
+            raise UsageError(f"record directory {path} exists and is not a directory") from None
+        raise UsageError(f"cannot record to {path}: {exc.strerror or exc}") from None
+    try:
+        owner = os.fstat(fd).st_uid
+        if owner not in (os.geteuid(), 0):
+            raise UsageError(f"record directory {path} belongs to uid {owner}, not to this "
+                             "user or root (refused: its owner could redirect the recording)")
+        if os.listdir(fd):
             raise UsageError(f"record directory {path} exists and is not empty "
                              "(recordings are never overwritten)")
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UsageError(f"cannot record to {path}: {exc.strerror or exc}") from None
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _no_planted_link(path: Path) -> None:
+    """``UsageError`` if a parent of ``path`` is a symbolic link another user owns."""
+    for parent in reversed(Path(os.path.abspath(path)).parents):
+        try:
+            st = os.lstat(parent)
+        except OSError:
+            return  # created below by us
+        if stat.S_ISLNK(st.st_mode) and st.st_uid not in (os.geteuid(), 0):
+            raise UsageError(f"record directory {path}: {parent} is a symbolic link of uid "
+                             f"{st.st_uid} (refused: it could point anywhere)")
 
 
 class Recorder:
@@ -132,7 +169,6 @@ class Recorder:
                  min_free_mb: float = 64.0, codec: str = "huffyuv",
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.path = Path(path)
-        prepare_directory(self.path)
         self.frame_size = frame_size
         self.fit = fit
         self.blocking = blocking
@@ -144,13 +180,27 @@ class Recorder:
         self.records_lost = 0
         self.closed = False
         self._broken: str | None = None
+        directory = open_directory(self.path)
+        try:
+            self._start_writer(directory, meta, rate_hz, min_free_mb, codec)
+        finally:
+            os.close(directory)  # the writer has its own
+        self._pipe = self.process.stdin.fileno()
+        with contextlib.suppress(OSError):  # room for ~1 s of records (Linux: 1 MiB max)
+            fcntl.fcntl(self._pipe, F_SETPIPE_SZ, 1 << 20)
+        os.set_blocking(self._pipe, blocking)
+
+    def _start_writer(self, directory: int, meta: dict[str, Any], rate_hz: float,
+                      min_free_mb: float, codec: str) -> None:
+        """``meta.json``, then the writer process, given the directory's descriptor."""
+        frame_size, queue_frames = self.frame_size, self.slots
         meta = {"format": FORMAT, "version": VERSION, "frame_size": list(frame_size),
                 "rate_hz": rate_hz, "frames": FRAMES_FILE, "codec": codec,
                 "versions": versions(),
                 "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(),
                 **meta}
         try:  # a new file: a link planted in a directory that existed is not followed
-            with os.fdopen(safe_file.create_new(self.path / "meta.json"), "w") as file:
+            with os.fdopen(safe_file.create_new("meta.json", dir_fd=directory), "w") as file:
                 file.write(json.dumps(meta, indent=1) + "\n")
         except OSError as exc:
             raise UsageError(f"cannot record to {self.path}: {exc.strerror or exc}") from None
@@ -163,8 +213,9 @@ class Recorder:
                 writer_command(json.dumps({
                     "path": os.path.abspath(self.path), "frame_size": [width, height],
                     "rate_hz": rate_hz, "slots": queue_frames, "min_free_mb": min_free_mb,
-                    "codec": codec, "fd": memory})),
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE, pass_fds=(memory,), cwd="/",
+                    "codec": codec, "fd": memory, "directory": directory})),
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, pass_fds=(memory, directory),
+                cwd="/",
             )
         finally:
             os.close(memory)
@@ -178,10 +229,6 @@ class Recorder:
             self.process.wait()
             raise UsageError(f"cannot record to {self.path}: "
                              f"{ready.replace('error: ', '') or 'the writer did not start'}")
-        self._pipe = self.process.stdin.fileno()
-        with contextlib.suppress(OSError):  # room for ~1 s of records (Linux: 1 MiB max)
-            fcntl.fcntl(self._pipe, F_SETPIPE_SZ, 1 << 20)
-        os.set_blocking(self._pipe, blocking)
 
     @property
     def error(self) -> str | None:

@@ -48,19 +48,20 @@ def layout(mm: mmap.mmap, slots: int, size: tuple[int, int]) -> tuple[np.ndarray
 
 class Writer:
     def __init__(self, config: dict[str, Any], mm: mmap.mmap) -> None:
-        self.path = Path(config["path"])
+        self.path = Path(config["path"])  # for messages: files are made in ``directory``
+        self.directory: int = config["directory"]
         self.min_free = float(config["min_free_mb"]) * 1e6
         self.mm = mm
         self.header, self.frames = layout(mm, config["slots"], tuple(config["frame_size"]))
         self.error: str | None = None
         self.run_summary: dict[str, Any] = {}
         self.next_space_check = 0.0
-        # Every file is created new, never through a link planted in a directory that
-        # existed (empty) before the run; OpenCV writes the video through the open file.
-        self.ticks = os.fdopen(safe_file.create_new(self.path / "ticks.jsonl"), "w",
+        # Every file is created new in the directory the runtime opened, never through a
+        # link planted there; OpenCV writes the video through the open file.
+        self.ticks = os.fdopen(safe_file.create_new("ticks.jsonl", dir_fd=self.directory), "w",
                                encoding="utf-8")
         self.fourcc = CODECS[config["codec"]]
-        self.video_fd = safe_file.create_new(self.path / FRAMES_FILE)
+        self.video_fd = safe_file.create_new(FRAMES_FILE, dir_fd=self.directory)
         with safe_file.path_for_library(self.video_fd, Path(FRAMES_FILE).suffix) as video_path:
             self.video = cv2.VideoWriter(video_path, cv2.VideoWriter_fourcc(*self.fourcc),
                                          config["rate_hz"], tuple(config["frame_size"]))
@@ -100,7 +101,7 @@ class Writer:
         if now < self.next_space_check:
             return
         self.next_space_check = now + 1.0
-        disk = os.statvfs(self.path)
+        disk = os.fstatvfs(self.directory)
         free = disk.f_bavail * disk.f_frsize
         if free < self.min_free:
             raise OSError(errno.ENOSPC, f"disk nearly full: {free / 1e6:.0f} MB free, "
@@ -129,8 +130,10 @@ class Writer:
                   "records_lost": runtime.get("records_lost", 0) + int(self.header[LOST]),
                   "error": self.error}
         with contextlib.suppress(OSError), os.fdopen(  # the directory may be gone: the
-                safe_file.create_new(self.path / "summary.json"), "w") as file:  # error said so
+                safe_file.create_new("summary.json", dir_fd=self.directory), "w") as file:
             file.write(json.dumps(finite({**counts, "run": self.run_summary}), indent=1) + "\n")
+        with contextlib.suppress(OSError):  # (the error said so)
+            os.close(self.directory)
 
 
 def main() -> int:
