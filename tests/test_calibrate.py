@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 import tomllib
 
+from jetbot_rt.config.sections import load_config
+
 pytest.importorskip("pybullet")
 
 TRUTHS = {
@@ -49,6 +51,7 @@ def test_calibrate_in_the_sim_recovers_each_truth_within_tolerance(tmp_path: Pat
         total = truth["latency"] + truth.get("camera_latency", 0.0)
         assert abs(fitted["latency"] - total) < TOLERANCE["latency"], (name, fitted)
         assert fitted["camera_latency"] == 0.0
+        load_config(str(tmp_path / f"fit{i}.toml"))  # what jetbot-train train --config reads
         # --fit re-fits the recording without driving: the same numbers
         again = _calibrate("--fit", f"rec{i}", cwd=tmp_path)
         text, _ = again.communicate(timeout=120)
@@ -64,6 +67,16 @@ def test_calibrate_stops_with_exit_3_when_the_marker_is_lost(tmp_path: Path) -> 
     assert run.returncode == 3, (out, err)
     assert "calibration marker lost" in out + err
     assert "motors       confirmed zero" in out + err
+
+
+def test_calibrate_refuses_with_exit_2_before_driving_when_no_marker_is_in_view(
+        tmp_path: Path) -> None:
+    (tmp_path / "dark.toml").write_text("[sim]\nblackout = [0.0, 100.0]\n")
+    run = _calibrate("--backend", "sim", "--config", "dark.toml", "--yes", "--record", "rec",
+                     cwd=tmp_path)
+    out, err = run.communicate(timeout=120)
+    assert run.returncode == 2, (out, err)
+    assert "no calibration marker in view" in err and "driving at" not in out
 
 
 @pytest.mark.parametrize("args, says", [
