@@ -177,7 +177,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
     out = tmp_path / "m.onnx"
     cases = [
         (["train", "--task", "sideways", "--timesteps", "10", "--out", str(tmp_path / "x")],
-         "invalid choice: 'sideways'"),
+         "unknown task 'sideways'"),
         (["train", "--config", str(bad_train), "--out", str(tmp_path / "x")],
          "unknown training option(s) gama"),
         (["train", "--timesteps", "0", "--out", str(tmp_path / "x")], "--timesteps"),
@@ -201,7 +201,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
         (["export", "--checkpoint", str(smoke_run / "checkpoint.pt"), "--out",
           str(a_file / "m.onnx")],
          "cannot write"),
-        (["eval", "--task", "sideways", "--episodes", "1"], "invalid choice"),
+        (["eval", "--task", "sideways", "--episodes", "1"], "unknown task 'sideways'"),
         (["eval", "--ablate", "sepia", "--episodes", "1"], "invalid choice"),
         (["eval", "--policy", str(a_file), "--episodes", "1"], "not a loadable ONNX model"),
         (["eval", "--episodes", "0"], "--episodes"),

@@ -165,6 +165,7 @@ def _resume_command(argv: list[str]) -> str:
 
 
 def _train(args: argparse.Namespace, argv: list[str]) -> int:
+    algo = args.algo or default_algo(args.task)  # a bad --task: refused before torch loads
     from jetbot_rt.train import dagger, ppo
     from jetbot_rt.train.flags import overrides
     from jetbot_rt.train.hyperparams import OptionError, dagger_args, ppo_args, read_config_file
@@ -172,7 +173,6 @@ def _train(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.train.run_dir import Interrupted
 
     config, table = read_config_file(args.config)
-    algo = args.algo or default_algo(args.task)
     build, train = (dagger_args, dagger.train) if algo == "dagger" else (ppo_args, ppo.train)
     try:
         options = build(args.task, overrides(args, table, algo))
