@@ -3,6 +3,7 @@ the camera alone, recovers each value within the stated tolerances (docs/CALIBRA
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -77,6 +78,22 @@ def test_calibrate_refuses_with_exit_2_before_driving_when_no_marker_is_in_view(
     out, err = run.communicate(timeout=120)
     assert run.returncode == 2, (out, err)
     assert "no calibration marker in view" in err and "driving at" not in out
+
+
+def test_a_signal_while_calibrating_stops_the_robot_in_order_and_fits_nothing(
+        tmp_path: Path) -> None:
+    run = _calibrate("--backend", "sim", "--yes", "--record", "rec", "--out", "fit.toml",
+                     cwd=tmp_path)
+    assert run.stdout is not None
+    for line in run.stdout:  # the drive has begun
+        if line.startswith("driving at"):
+            break
+    run.send_signal(signal.SIGINT)
+    out, err = run.communicate(timeout=60)
+    assert run.returncode == 0, (out, err)
+    assert "SIGINT received" in out and "motors       confirmed zero" in out
+    assert "not fitted: the programme did not finish (SIGINT received)" in err
+    assert not (tmp_path / "fit.toml").exists()
 
 
 @pytest.mark.parametrize("args, says", [

@@ -32,6 +32,7 @@ from jetbot_rt.recording.recorder import expand_path
 
 FRAME_SIZE = (320, 180)
 SIM_MARKER_DISTANCE = 0.5
+DONE = "calibration programme done"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -117,8 +118,7 @@ class Arm(Phase):
     def enter(self) -> None:
         robot, _ = self.connect.connected
         latch = self.rt.latch
-        self.rt.programme.arm(robot.simulated, lambda: latch.trip(
-            "calibration programme done", fault=False))
+        self.rt.programme.arm(robot.simulated, lambda: latch.trip(DONE, fault=False))
 
 
 class Calibration(Runtime):
@@ -236,6 +236,10 @@ def run(args: argparse.Namespace) -> int:
         if sys.stdin.readline() == "":
             raise UsageError("no answer on stdin (use --yes)")
     result = calibration.run()
-    if result.exit_code != EXIT_OK:
+    if result.reason != DONE:  # a fault, a signal, `jetbot-rt stop`: the programme is cut
+        if result.exit_code == EXIT_OK:
+            print(f"jetbot-rt calibrate: not fitted: the programme did not finish "
+                  f"({result.reason}); the recording is {calibration.config.record.path}",
+                  file=sys.stderr)
         return result.exit_code
     return fit_recording(str(calibration.config.record.path), args.out)
