@@ -206,3 +206,31 @@ def test_a_task_file_outside_the_caps_is_refused(tmp_path):
     with pytest.raises(UsageError, match="task file"):
         load_task(f"{big}:X")
     assert Path(big).exists()
+
+
+@pytest.mark.parametrize(("body", "needle"), [
+    ("    def __init__(self, size):\n        pass\n", "Bad() failed: TypeError"),
+    ("    episode_steps = 0\n", "episode_steps must be an integer >= 1"),
+    ("    max_speed = 2.0\n", "max_speed a number in (0, 1]"),
+])
+def test_a_task_class_with_bad_settings_is_refused_when_loaded(tmp_path, body, needle):
+    (tmp_path / "bad.py").write_text("from jetbot_rt.tasks import Task\n"
+                                     f"class Bad(Task):\n{body}")
+    with pytest.raises(UsageError, match=r"task '.*bad.py:Bad'") as caught:
+        load_task(f"{tmp_path / 'bad.py'}:Bad")
+    assert needle in str(caught.value)
+
+
+def test_an_outcome_without_is_success_is_a_usage_error():
+    from jetbot_rt.train.env import JetbotEnv
+
+    class NoVerdict(Pieces):
+        def outcome(self, scene, world):
+            return {"distance": 1.0}
+
+    env = JetbotEnv(NoVerdict(), image_size=(16, 16))
+    try:
+        with pytest.raises(UsageError, match="'is_success'"):
+            env.reset(seed=0)
+    finally:
+        env.close()

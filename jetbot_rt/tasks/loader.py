@@ -155,10 +155,17 @@ def load_task(name: str | Task) -> Task:
     if not isinstance(name, str) or not name:
         raise _unknown(str(name))
     if name not in _LOADED:
-        task = _task_class(name)()
-        if task.episode_steps < 1 or not 0 < task.max_speed <= 1:
-            raise UsageError(f"task {name!r}: episode_steps must be >= 1 and max_speed in "
-                             f"(0, 1], got {task.episode_steps}, {task.max_speed}")
+        cls = _task_class(name)
+        try:
+            task = cls()
+        except Exception as exc:  # the user's __init__
+            raise UsageError(f"task {name!r}: {cls.__name__}() failed: "
+                             f"{type(exc).__name__}: {exc}") from None
+        steps, speed = task.episode_steps, task.max_speed
+        if not (isinstance(steps, int) and steps >= 1 and isinstance(speed, (int, float))
+                and 0 < speed <= 1):
+            raise UsageError(f"task {name!r}: episode_steps must be an integer >= 1 and "
+                             f"max_speed a number in (0, 1], got {steps!r}, {speed!r}")
         _LOADED[name] = task
     return _LOADED[name]
 

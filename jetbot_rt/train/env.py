@@ -112,8 +112,12 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         return scene
 
     def _info(self, duties: tuple[float, float]) -> dict[str, Any]:
+        outcome = self.task.outcome(self.scene, self.world)
+        if not isinstance(outcome, dict) or "is_success" not in outcome:
+            raise UsageError(f"task {self.task.name!r}: outcome() must return a dict with "
+                             f"'is_success', got {type(outcome).__name__}")
         return {
-            **self.task.outcome(self.scene, self.world),
+            **outcome,
             "pose": np.array(self.world.robot_pose()),
             "duty": np.array(duties),
             "sim_time": self.world.sim_time,
