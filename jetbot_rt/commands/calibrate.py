@@ -186,12 +186,15 @@ def read_data(path: str) -> tuple[Data, Geometry, float]:
     simulated = recording.meta.get("backend") == "sim"
     rows: list[list[float]] = []
     for record, image in recording.ticks_with_frames():
-        # the sim's time is one period per tick (a late tick there loses no time)
-        t = (int(record["tick"]) - 1) * period if simulated else float(record["t"])
+        try:
+            # the sim's time is one period per tick (a late tick there loses no time)
+            t = (int(record["tick"]) - 1) * period if simulated else float(record["t"])
+            left, right = (float(v) for v in record["cmd"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UsageError(f"{path}: a tick record without its time or duties ({exc})") \
+                from None
         seen = meter.measure(image) if image is not None else None
-        cmd = record.get("cmd") or [0.0, 0.0]
-        rows.append([t, float(cmd[0]), float(cmd[1]),
-                     *(seen if seen is not None else (math.nan, math.nan))])
+        rows.append([t, left, right, *(seen if seen is not None else (math.nan, math.nan))])
     if len(rows) < 30:
         raise UsageError(f"{path}: {len(rows)} ticks recorded; too few to fit")
     table = np.array(rows)
