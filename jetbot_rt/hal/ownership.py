@@ -46,16 +46,19 @@ def _open(path: Path) -> int:
 def _open_emulator_lock(path: Path, flags: int) -> int:
     """``<state file>.owner``: whoever can open it can take the lock, so it grants what the
     state file grants and no more: its owner, its mode (``rw`` bits of user and group, never
-    others). Never through a link (root would create the file a link names), and no
+    others'). Never through a link (root would create the file a link names), and no
     ``O_CREAT`` on an existing file (``protected_regular`` refuses that to root in /tmp when
     another user owns it). An existing one must be a regular file of this user, root or the
-    state file's owner; one open to others is closed to them first (or refused). OSError:
-    cannot open; UsageError: refused, saying why."""
+    state file's owner; one still open to others (an earlier version made it 0666) is closed
+    to them where this user may change it. OSError: cannot open; UsageError: refused, saying
+    why."""
     state = path.with_name(path.name[: -len(".owner")])
     try:
         state_st: os.stat_result | None = os.stat(state, follow_symlinks=False)
     except OSError:
         state_st = None
+    if state_st is not None and not stat.S_ISREG(state_st.st_mode):
+        state_st = None  # a link's owner is nobody to trust (the emulator refuses it anyway)
     trusted = {os.geteuid(), 0} | ({state_st.st_uid} if state_st else set())
     wanted = (stat.S_IMODE(state_st.st_mode) if state_st else 0o666 & ~_umask()) & 0o660
     try:
@@ -79,13 +82,9 @@ def _open_emulator_lock(path: Path, flags: int) -> int:
                 f"owned by uid {st.st_uid}, not by this user, root or the state file's owner"
             raise UsageError(f"{path} is {what} (refused: whoever can open it can take the "
                              "board's owner lock; remove it)")
-        if st.st_mode & 0o007:
-            try:
-                os.fchmod(fd, stat.S_IMODE(st.st_mode) & 0o770)
-            except OSError:
-                raise UsageError(f"{path} can be opened by every user (mode "
-                                 f"{stat.S_IMODE(st.st_mode):04o}) and is not ours to change "
-                                 "(refused: anyone could take the board's owner lock)") from None
+        if st.st_mode & 0o007:  # an earlier version made it 0666: closed to others now,
+            with contextlib.suppress(OSError):  # if ours to change (else root's next run)
+                _give_like(fd, path, state_st, wanted)
     except BaseException:
         os.close(fd)
         raise
