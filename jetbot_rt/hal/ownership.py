@@ -49,9 +49,9 @@ def _open_emulator_lock(path: Path, flags: int) -> int:
     others'). Never through a link (root would create the file a link names), and no
     ``O_CREAT`` on an existing file (``protected_regular`` refuses that to root in /tmp when
     another user owns it). An existing one must be a regular file of this user, root or the
-    state file's owner; one still open to others (an earlier version made it 0666) is closed
-    to them where this user may change it. OSError: cannot open; UsageError: refused, saying
-    why."""
+    state file's owner; one open to others is closed to them where this user may change it
+    (one only root may change is used as it is: its owner is trusted, the risk a refused run).
+    OSError: cannot open; UsageError: refused, saying why."""
     state = path.with_name(path.name[: -len(".owner")])
     try:
         state_st: os.stat_result | None = os.stat(state, follow_symlinks=False)
@@ -82,8 +82,8 @@ def _open_emulator_lock(path: Path, flags: int) -> int:
                 f"owned by uid {st.st_uid}, not by this user, root or the state file's owner"
             raise UsageError(f"{path} is {what} (refused: whoever can open it can take the "
                              "board's owner lock; remove it)")
-        if st.st_mode & 0o007:  # an earlier version made it 0666: closed to others now,
-            with contextlib.suppress(OSError):  # if ours to change (else root's next run)
+        if st.st_mode & 0o007:
+            with contextlib.suppress(OSError):  # not ours to change: root's next run will
                 _give_like(fd, path, state_st, wanted)
     except BaseException:
         os.close(fd)
