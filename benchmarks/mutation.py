@@ -82,9 +82,9 @@ MODULES: dict[str, tuple[list[str], list[str]]] = {
     "jetbot_rt/commands/stop.py": (["tests/test_stop.py"],
                                    ["tests/test_fault_config_read.py", *OWNERSHIP_STOP,
                                     E2E_REAL]),
-    "jetbot_rt/runtime_dir.py": (["tests/test_stop.py", "tests/test_board_record.py"],
+    "jetbot_rt/service/runtime_dir.py": (["tests/test_stop.py", "tests/test_board_record.py"],
                                  ["tests/test_hostile_user.py", *OWNERSHIP_STOP]),
-    "jetbot_rt/console.py": (["tests/test_fault_stalled_output.py"], [E2E_REAL]),
+    "jetbot_rt/service/console.py": (["tests/test_fault_stalled_output.py"], [E2E_REAL]),
     # the other end-to-end systemd tests run with the default 0.1 s in-process watchdog, which
     # a loaded machine trips now and then: a false kill here
     "jetbot_rt/service/systemd_notify.py": (
