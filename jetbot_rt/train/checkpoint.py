@@ -258,19 +258,27 @@ def _torch_reason(exc: Exception) -> str:
     return first_line(exc)[:120]
 
 
-def load_checkpoint(path: str | Path) -> Checkpoint:
-    """Read and check a checkpoint (module docstring); ``UsageError`` says what is wrong."""
+def load_checkpoint(path: str | Path, *, follow_links: bool = True,
+                    label: str | Path | None = None) -> Checkpoint:
+    """Read and check a checkpoint (module docstring); ``UsageError`` says what is wrong.
+    ``follow_links=False`` refuses a link at ``path`` (a run directory's own checkpoint);
+    ``label``: the path messages show (``path`` may be a ``/proc/self/fd`` one)."""
     path = Path(path)
-    data = safe_file.read_bytes(path, "checkpoint", MAX_CHECKPOINT_BYTES)
-    state = _unpickle(path, data)
+    name = Path(label) if label is not None else path
+    try:
+        data = safe_file.read_bytes(path, "checkpoint", MAX_CHECKPOINT_BYTES,
+                                    follow_links=follow_links)
+    except UsageError as exc:
+        raise UsageError(str(exc).replace(str(path), shown(name))) from None
+    state = _unpickle(name, data)
     if not isinstance(state, dict) or not isinstance(state.get("format"), str) or \
             state["format"] != CHECKPOINT_FORMAT:
-        raise UsageError(f"{shown(path)} is not a jetbot-train checkpoint (format "
+        raise UsageError(f"{shown(name)} is not a jetbot-train checkpoint (format "
                          f"{CHECKPOINT_FORMAT})")
     try:
-        return _parse(shown(path), state)
+        return _parse(shown(name), state)
     except _Defect as exc:
-        raise UsageError(f"checkpoint {shown(path)}: {exc}") from None
+        raise UsageError(f"checkpoint {shown(name)}: {exc}") from None
 
 
 def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:

@@ -150,7 +150,7 @@ class _Run:
     def __init__(self, options: DAggerArgs) -> None:
         options.validate()
         self.options = options
-        self.run = RunDirectory(options.out)
+        self.run = RunDirectory(options.out, METRIC_FIELDS)
         saved = self.run.prepare(options.resume)
         torch.manual_seed(options.seed)
         model, resumed = starting_model(options, saved, "dagger")
@@ -186,7 +186,7 @@ class _Run:
                    dataset=len(data), loss=round(loss, 5), collect_s=round(collected - began, 1),
                    regress_s=round(time.perf_counter() - collected, 1),
                    wall_s=round(progress.wall_s(), 1))
-        self.run.append_metrics(row, METRIC_FIELDS)
+        self.run.append_metrics(row)
         if options.snapshots and progress.update % options.snapshots == 0:
             self.run.export_policy(self.model.eval(), options.task, self.max_speed,
                                    name=f"policy_{progress.update}.onnx")
@@ -202,6 +202,13 @@ def train(options: DAggerArgs) -> dict[str, Any]:
     """Run DAgger; writes checkpoint, ONNX, metrics and curve to ``options.out``; returns a
     summary. Ctrl-C: writes them as they are and raises ``Interrupted``."""
     run = _Run(options)
+    try:
+        return _train(run, options)
+    finally:
+        run.run.close()
+
+
+def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
     progress = run.progress
     total = options.iterations * options.steps_per_iteration
     bar = tqdm(total=total, initial=min(progress.global_step, total),

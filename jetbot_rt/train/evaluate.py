@@ -15,6 +15,7 @@ Blind baselines and seam ablations (``ablate``), on the same episodes:
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -23,11 +24,12 @@ from typing import Any
 import numpy as np
 
 from jetbot_rt.config.sections import Config
-from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path
 from jetbot_rt.errors import UsageError
+from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path
 from jetbot_rt.tasks import BUILTIN, load_task
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
 from jetbot_rt.train.hyperparams import OptionError
+from jetbot_rt.train.out_dir import own_directory
 from jetbot_rt.train.vec_env import spawn_context
 from jetbot_rt.train.video import EpisodeRecording, timed
 
@@ -140,13 +142,13 @@ def _run_one(job: tuple[str, str, Config, int, str | None, str | None]) -> dict:
     return run_episode(_WORKER["env"], _WORKER["policy"], seed, video_dir=video_dir)
 
 
-def evaluate(
-    policy_path: str | Path | None = None,
 def _stat(function: Any, values: list[float | None]) -> float | None:
     """``function`` of ``values``, None for a task that reports no such value."""
     return None if any(v is None for v in values) else float(function(values))
 
 
+def evaluate(
+    policy_path: str | Path | None = None,
     *,
     task: str = "forward",
     episodes: int = 100,
@@ -169,6 +171,8 @@ def _stat(function: Any, values: list[float | None]) -> float | None:
     if policy_path is None and task not in BUILTIN:
         raise UsageError(f"no bundled policy for task {task!r}; pass --policy FILE.onnx")
     config = config or Config()
+    if video_dir is not None:  # refused before any episode runs, as a run directory is
+        os.close(own_directory(video_dir, "--video directory"))
     path = resolve_policy_path(policy_path, task)
     policy = load_policy(path, config, ablate=ablate)  # fail early, here, on a bad file
     seeds = [seed + i for i in range(episodes)]

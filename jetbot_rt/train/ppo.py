@@ -166,7 +166,7 @@ class _Run:
         options.validate()
         self.options = options
         self.device = resolve_device(options.device)
-        self.run = RunDirectory(options.out)
+        self.run = RunDirectory(options.out, METRIC_FIELDS)
         saved = self.run.prepare(options.resume)
         torch.manual_seed(options.seed)
         torch.set_num_threads(options.torch_threads)
@@ -186,7 +186,7 @@ class _Run:
             rms, state = self.source.normalizer.return_rms, resumed.reward_rms
             rms.mean, rms.var, rms.count = (np.float64(state["mean"]),
                                             np.float64(state["var"]), float(state["count"]))
-        self.writer = _tensorboard(self.run.path)
+        self.writer = _tensorboard(self.run.inside())
         self.episodes = EpisodeStats()
         self.steps_per_s: float | None = None
 
@@ -210,7 +210,7 @@ class _Run:
         progress.update, progress.global_step = update, progress.global_step + rollout.steps
         row = _metrics_row(progress, self.episodes, stats, self.optimizer, self.source)
         self.steps_per_s = row["steps_per_s"]
-        self.run.append_metrics(row, METRIC_FIELDS)
+        self.run.append_metrics(row)
         if self.writer is not None:
             for key, value in row.items():
                 if key not in ("update", "global_step") and value != "":
@@ -240,6 +240,13 @@ def train(options: PPOArgs) -> dict[str, Any]:
     summary. Ctrl-C: writes them as they are and raises ``Interrupted`` (with the summary);
     Ray env workers lost: ``WorkersLost`` (with the summary if an update had finished)."""
     run = _Run(options)
+    try:
+        return _train(run, options)
+    finally:
+        run.run.close()
+
+
+def _train(run: _Run, options: PPOArgs) -> dict[str, Any]:
     progress, total = run.progress, options.total_timesteps
     bar = tqdm(total=total, initial=min(progress.global_step, total),
                disable=not options.progress, unit="step", dynamic_ncols=True)

@@ -4,19 +4,48 @@
 (one row per PPO update or DAgger iteration), ``learning_curve.png`` and, for PPO with the
 ``tensorboard`` extra, TensorBoard events. Both trainers and the sweep go through
 ``RunDirectory``: ``prepare`` (writable; the checkpoint to resume from, or a fresh start),
-``append_metrics``, ``plot_curve``, ``save_checkpoint``, ``export_policy``, ``summary``.
+``append_metrics``, ``plot_curve``, ``save_checkpoint``, ``export_policy``, ``summary``,
+``close``.
+
+What is already in OUT is not trusted (a copied run, a shared directory, a file planted by
+whoever else can write there):
+
+- OUT itself must not be a symbolic link and must be owned by us or root (``out_dir``):
+  the owner of a directory can plant a link at any name we are about to write, and root would
+  write through it. It is opened once; every file after that is named relative to that
+  descriptor (``/proc/self/fd/N/NAME``), so renaming OUT or a directory above it, or putting
+  a link in its place, mid-run changes nothing about where the files go.
+- Every file is created without following a link: whole files (checkpoint, policy, curve,
+  the write test) with ``safe_file.replaced_file``/``create_new`` (``O_CREAT|O_EXCL|
+  O_NOFOLLOW``, write-then-rename), and ``metrics.csv`` is appended to through one
+  descriptor opened at the start with ``O_NOFOLLOW|O_NONBLOCK`` and checked to be a regular
+  file of ours with no other hard link.
+- On ``--resume``, ``metrics.csv`` is read once, through that descriptor, by ``safe_file``
+  (at most ``MAX_METRICS_BYTES``, strict UTF-8) and validated before any training (the
+  columns this trainer writes, numbers that are finite): a bad one is one line and exit 2,
+  never a traceback after the training time is spent. The curve is drawn from the rows kept
+  in memory, so nothing is read back later.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
+import io
+import math
+import os
+import stat
 import time
+import weakref
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.checkpoint import (
@@ -29,11 +58,21 @@ from jetbot_rt.train.checkpoint import (
 from jetbot_rt.train.device import to_cpu
 from jetbot_rt.train.export import export_model
 from jetbot_rt.train.model import ActorCritic
+from jetbot_rt.train.out_dir import inside, writable_directory
 
 METRICS_NAME = "metrics.csv"
 CURVE_NAME = "learning_curve.png"
 POLICY_NAME = "policy.onnx"
 RUN_FILES = (CHECKPOINT_NAME, POLICY_NAME, METRICS_NAME, CURVE_NAME)
+MAX_METRICS_BYTES = 16 * safe_file.MIB
+"""A PPO row is about 150 bytes: 16 MiB is 100,000 updates, 200 M steps at 2048 per update."""
+STEP_COLUMN = "global_step"
+MAX_STEP_DIGITS = 19
+"""A step count longer than this is not one (2**63 has 19 digits), and Python before 3.11
+converts a long digit string in quadratic time."""
+
+Value = float | None
+"""A metrics cell: a number, or None where the row has no value (no episode ended yet)."""
 
 
 class Interrupted(Exception):
@@ -44,17 +83,66 @@ class Interrupted(Exception):
         self.summary = summary
 
 
-def writable_directory(path: Path) -> None:
-    """Create ``path`` if needed and make sure a file can be written in it, before any work
-    that would be lost."""
+@contextlib.contextmanager
+def _named(where: Path, display: Path) -> Iterator[None]:
+    """A ``UsageError`` names the file as the user gave it, not as ``/proc`` does."""
     try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = path / ".write_test"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise UsageError(f"cannot write to output directory {shown(path)}: "
-                         f"{exc.strerror or exc}") from None
+        yield
+    except UsageError as exc:
+        raise UsageError(str(exc).replace(str(where), shown(display))) from None
+
+
+def _clip(text: str, limit: int = 60) -> str:
+    return repr(text if len(text) <= limit else text[:limit] + "...")
+
+
+def parse_metrics(text: str, names: tuple[str, ...], display: Path
+                  ) -> tuple[bool, list[tuple[Value, ...]]]:
+    """Whether ``text`` (a ``metrics.csv``) has its header, and its rows as numbers: the
+    header must be ``names`` (the columns this trainer writes), each row as many cells, each
+    cell empty or a finite number, ``global_step`` a whole number >= 0. Else ``UsageError``."""
+    def bad(line: int, problem: str) -> UsageError:
+        return UsageError(f"{shown(display)} line {line}: {problem} (not a metrics file this "
+                          "trainer wrote; move it away to resume without it)")
+
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[tuple[Value, ...]] = []
+    try:
+        header = next(reader, None)
+        if header is None:
+            return False, rows
+        if tuple(header) != names:
+            raise bad(1, f"the columns are {_clip(','.join(header))}, expected "
+                      f"{_clip(','.join(names))}")
+        for cells in reader:
+            if not cells:
+                continue
+            if len(cells) != len(names):
+                raise bad(reader.line_num, f"{len(cells)} cells, expected {len(names)}")
+            try:
+                rows.append(tuple(_cell(name, cell)
+                                  for name, cell in zip(names, cells, strict=True)))
+            except ValueError as exc:
+                raise bad(reader.line_num, str(exc)) from None
+    except csv.Error as exc:
+        raise bad(reader.line_num, str(exc)) from None
+    return True, rows
+
+
+def _cell(name: str, cell: str) -> Value:
+    if cell == "":
+        return None
+    if name == STEP_COLUMN:
+        if not (cell.isascii() and cell.isdigit() and len(cell) <= MAX_STEP_DIGITS):
+            raise ValueError(f"{name} {_clip(cell)} is not a step count")
+        return float(int(cell))
+    try:
+        value = float(cell)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise ValueError(f"{name} {_clip(cell)} is not a finite number")
+    return value
 
 
 def starting_model(options: Any, saved: Checkpoint | None, algo: str
@@ -105,30 +193,112 @@ class Panel:
     label: str | None = None
 
 
+def _close_all(fds: dict[str, int]) -> None:
+    for fd in fds.values():
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    fds.clear()
+
+
 class RunDirectory:
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, names: tuple[str, ...]) -> None:
+        """``names``: the metrics columns of this trainer."""
         self.path = Path(path)
+        self.names = names
         self.checkpoint = self.path / CHECKPOINT_NAME
         self.metrics = self.path / METRICS_NAME
         self.curve = self.path / CURVE_NAME
         self.policy = self.path / POLICY_NAME
+        self.rows: list[tuple[Value, ...]] = []
+        """Every row of ``metrics.csv``: those read on resume, then those appended."""
+        self._header = False
+        self._fds: dict[str, int] = {}
+        """``dir`` and ``metrics`` once open; closed by ``close`` (or when collected)."""
+        self.close = weakref.finalize(self, _close_all, self._fds)
+
+    def inside(self, name: str = "") -> Path:
+        """Where ``name`` in the directory opened by ``prepare`` is, for a library that
+        writes files of its own there (TensorBoard)."""
+        return inside(self._fds["dir"], name)
 
     def prepare(self, resume: bool) -> Checkpoint | None:
-        """The checkpoint to continue from when ``resume`` finds one; else a fresh start (the
-        metrics of an earlier run are removed)."""
-        writable_directory(self.path)
-        if resume and self.checkpoint.exists():
-            return load_checkpoint(self.checkpoint)
-        self.metrics.unlink(missing_ok=True)
-        return None
+        """The checkpoint to continue from when ``resume`` finds one (and the metrics so
+        far, checked); else a fresh start (the metrics of an earlier run are removed)."""
+        try:
+            self._fds["dir"] = writable_directory(self.path)
+            if resume and self._exists(CHECKPOINT_NAME):
+                saved = load_checkpoint(self.inside(CHECKPOINT_NAME), follow_links=False,
+                                        label=self.checkpoint)
+                self._read_metrics()
+                return saved
+            self._remove(METRICS_NAME)
+            return None
+        except BaseException:
+            self.close()
+            raise
 
-    def append_metrics(self, row: dict[str, Any], names: tuple[str, ...]) -> None:
-        new = not self.metrics.exists()
-        with self.metrics.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=names)
-            if new:
-                writer.writeheader()
-            writer.writerow({k: row.get(k, "") for k in names})
+    def _exists(self, name: str) -> bool:
+        try:
+            os.stat(name, dir_fd=self._fds["dir"], follow_symlinks=False)
+        except FileNotFoundError:
+            return False
+        return True
+
+    def _remove(self, name: str) -> None:
+        try:
+            os.unlink(name, dir_fd=self._fds["dir"])
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise UsageError(f"cannot remove {shown(self.path / name)}: "
+                             f"{exc.strerror or exc}") from None
+
+    def _read_metrics(self) -> None:
+        """Open ``metrics.csv`` for the appends to come and read what it holds."""
+        flags = (os.O_RDWR | os.O_APPEND | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY
+                 | os.O_CLOEXEC)
+        try:
+            fd = os.open(METRICS_NAME, flags, dir_fd=self._fds["dir"])
+        except FileNotFoundError:
+            return  # the first append creates it
+        except OSError as exc:
+            reason = ("a symbolic link (not followed here)" if exc.errno == errno.ELOOP
+                      else exc.strerror or str(exc))
+            raise UsageError(f"cannot open {shown(self.metrics)}: {reason}") from None
+        self._fds["metrics"] = fd
+        info, me = os.fstat(fd), os.geteuid()
+        problem = ("not a regular file" if not stat.S_ISREG(info.st_mode)
+                   else f"owned by uid {info.st_uid}, not by you (uid {me})"
+                   if info.st_uid != me
+                   else "it has other hard links" if info.st_nlink != 1 else None)
+        if problem is not None:
+            raise UsageError(f"{shown(self.metrics)}: {problem}; move it away to resume "
+                             "without it")
+        os.set_blocking(fd, True)
+        with _named(inside(fd), self.metrics):
+            data = safe_file.read_bytes(inside(fd), "metrics file", MAX_METRICS_BYTES)
+        text = safe_file.decode(data, self.metrics, "metrics file")
+        self._header, self.rows = parse_metrics(text, self.names, self.metrics)
+
+    def append_metrics(self, row: dict[str, Any]) -> None:
+        """One row more in ``metrics.csv`` (created now if it is not there yet)."""
+        values = [row.get(name, "") for name in self.names]
+        buffer = io.StringIO(newline="")
+        writer = csv.writer(buffer)
+        try:
+            if "metrics" not in self._fds:
+                self._fds["metrics"] = safe_file.create_new(self.inside(METRICS_NAME))
+            if not self._header:
+                writer.writerow(self.names)
+            writer.writerow(values)
+            data = buffer.getvalue().encode()
+            while data:
+                data = data[os.write(self._fds["metrics"], data):]
+        except OSError as exc:
+            raise UsageError(f"cannot write {shown(self.metrics)}: {exc.strerror or exc}"
+                             ) from None
+        self._header = True
+        self.rows.append(tuple(None if v == "" else float(v) for v in values))
 
     def save_checkpoint(self, *, algo: str, options: Any, model: ActorCritic,
                         optimizer: torch.optim.Optimizer, progress: Progress, max_speed: float,
@@ -149,11 +319,12 @@ class RunDirectory:
         }
         if reward_rms is not None:
             state["reward_rms"] = reward_rms
-        save_checkpoint(self.checkpoint, state)
+        save_checkpoint(self.inside(CHECKPOINT_NAME), state)
 
     def export_policy(self, model: ActorCritic, task: str, max_speed: float,
                       name: str = POLICY_NAME) -> None:
-        export_model(model, self.path / name, task=task, max_speed=max_speed)
+        with _named(self.inside(), self.path):
+            export_model(model, self.inside(name), task=task, max_speed=max_speed)
 
     def plot_curve(self, title: str, panels: tuple[Panel, ...]) -> None:
         """``learning_curve.png``: each panel's column over the environment steps, from the
@@ -163,15 +334,12 @@ class RunDirectory:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        rows: list[dict[str, str]] = []
-        if self.metrics.exists():  # not before the first update ends
-            with self.metrics.open() as handle:
-                rows = list(csv.DictReader(handle))
+        step = self.names.index(STEP_COLUMN)
         fig, axes = plt.subplots(len(panels), 1, figsize=(7, 6), sharex=True)
         for ax, panel in zip(axes, panels, strict=True):
-            shown_rows = [r for r in rows if r[panel.column]]
-            ax.plot([int(r["global_step"]) for r in shown_rows],
-                    [float(r[panel.column]) for r in shown_rows], panel.style,
+            column = self.names.index(panel.column)
+            shown_rows = [r for r in self.rows if r[column] is not None and r[step] is not None]
+            ax.plot([r[step] for r in shown_rows], [r[column] for r in shown_rows], panel.style,
                     color=panel.color, label=panel.label)
             if not shown_rows:
                 ax.text(0.5, 0.5, "no data yet", ha="center", transform=ax.transAxes)
@@ -185,8 +353,15 @@ class RunDirectory:
         axes[-1].set_xlabel("environment steps")
         fig.suptitle(title)
         fig.tight_layout()
-        fig.savefig(self.curve, dpi=100)
-        plt.close(fig)
+        try:
+            with safe_file.replaced_file(self.inside(), CURVE_NAME) as fd, \
+                    os.fdopen(os.dup(fd), "wb") as handle:
+                fig.savefig(handle, format="png", dpi=100)
+        except OSError as exc:
+            raise UsageError(f"cannot write {shown(self.curve)}: {exc.strerror or exc}"
+                             ) from None
+        finally:
+            plt.close(fig)
 
     def summary(self, progress: Progress, steps_per_s: float | None) -> dict[str, Any]:
         return {"global_step": progress.global_step, "updates": progress.update,

@@ -8,19 +8,28 @@ The trial's files (checkpoint, ONNX, metrics, curve) come back to the driver thr
 the nodes need no shared disk: ``OUT/<trial>/``. ``OUT/sweep.csv`` and ``OUT/sweep.md`` hold
 the table, which is also printed. A trial whose node dies is run again from the start
 elsewhere (Ray's task retries).
+
+OUT and each ``OUT/<trial>/`` are checked as a run directory is (``run_dir.own_directory``:
+no symbolic link, ours or root's) and every file is written with ``safe_file.replaced_file``
+relative to the directory opened once: a link planted at a name is replaced, never followed.
 """
 
 from __future__ import annotations
 
 import csv
+import io
+import os
 import tempfile
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from jetbot_rt.config import safe_file
+from jetbot_rt.errors import UsageError
 from jetbot_rt.train.hyperparams import OptionError, PPOArgs, ppo_args, read_config_file
-from jetbot_rt.train.run_dir import METRICS_NAME, RUN_FILES, writable_directory
+from jetbot_rt.train.out_dir import inside, own_directory, writable_directory
+from jetbot_rt.train.run_dir import METRICS_NAME, RUN_FILES
 
 COLUMNS = ("trial", "config", "seed", "eval_success_rate", "eval_mean_return",
            "train_success_rate", "global_step", "steps_per_s", "wall_s", "node")
@@ -88,7 +97,18 @@ def sweep(task: str, out: str | Path, *, seeds: Sequence[int] = (1, 2, 3),
         if value is not None and value <= 0:
             raise OptionError(name, f"must be > 0, got {value}")
     out = Path(out)
-    writable_directory(out)
+    out_fd = writable_directory(out)
+    try:
+        rows = _run_trials(task, out, out_fd, seeds, configs, num_envs, timesteps,
+                           eval_episodes, ray_address)
+    finally:
+        os.close(out_fd)
+    return rows
+
+
+def _run_trials(task: str, out: Path, out_fd: int, seeds: Sequence[int],
+                configs: Sequence[str | None], num_envs: int, timesteps: int | None,
+                eval_episodes: int, ray_address: str) -> list[dict[str, Any]]:
     trials = trial_options(task, seeds, configs, num_envs, timesteps)
     from jetbot_rt.train.ray_workers import connect  # imports ray
 
@@ -111,20 +131,41 @@ def sweep(task: str, out: str | Path, *, seeds: Sequence[int] = (1, 2, 3),
     rows = []
     for result in results:
         row = result["row"]
-        trial_dir = out / row["trial"]
-        trial_dir.mkdir(exist_ok=True)
-        for file_name, data in result["files"].items():
-            (trial_dir / file_name).write_bytes(data)
+        trial_fd = own_directory(row["trial"], "trial directory", parent=out_fd,
+                                 display=out / row["trial"])
+        try:
+            for file_name, data in result["files"].items():
+                _write(trial_fd, file_name, data, out / row["trial"])
+        finally:
+            os.close(trial_fd)
         rows.append(row)
-    write_table(rows, out)
+    write_table(rows, out_fd, out)
     return rows
 
 
-def write_table(rows: list[dict[str, Any]], out: Path) -> None:
-    with (out / "sweep.csv").open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+def _write(dir_fd: int, name: str, data: bytes, display: Path) -> None:
+    """``data`` as ``name`` in the directory open as ``dir_fd``, never through a link."""
+    try:
+        with safe_file.replaced_file(inside(dir_fd), name) as fd:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+    except OSError as exc:
+        raise UsageError(f"cannot write {safe_file.shown(display / name)}: "
+                         f"{exc.strerror or exc}") from None
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + " --- |" * len(COLUMNS)]
     lines += ["| " + " | ".join(str(row[c]) for c in COLUMNS) + " |" for row in rows]
-    (out / "sweep.md").write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
+
+
+def write_table(rows: list[dict[str, Any]], out_fd: int, out: Path) -> None:
+    """``sweep.csv`` and ``sweep.md`` in the directory open as ``out_fd`` (``out``)."""
+    buffer = io.StringIO(newline="")
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
+    writer.writeheader()
+    writer.writerows(rows)
+    _write(out_fd, "sweep.csv", buffer.getvalue().encode(), out)
+    _write(out_fd, "sweep.md", markdown_table(rows).encode(), out)
