@@ -139,15 +139,19 @@ class Browser:
 
     def wait_for(self, expression: str, timeout: float = 30.0) -> Any:
         deadline = time.monotonic() + timeout
+        seen: Any = None
         while time.monotonic() < deadline:
             try:
-                value = self.evaluate(expression)
-            except RuntimeError:
-                value = None  # the page is still loading: its elements are not there yet
+                value = seen = self.evaluate(expression)
+            except RuntimeError as exc:
+                value, seen = None, exc  # the page is still loading: no elements yet
             if value:
                 return value
             time.sleep(0.1)
-        raise AssertionError(f"not true within {timeout} s: {expression}")
+        page = self.evaluate("document.body.innerText.slice(0, 300) + ' | ' + "
+                             "(document.getElementById('state') || {}).textContent")
+        raise AssertionError(f"not true within {timeout} s: {expression} (last: {seen!r}; "
+                             f"the page: {page})")
 
     def click(self, selector: str) -> None:
         """A real mouse click (pressed and released) at the element's centre."""

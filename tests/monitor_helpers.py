@@ -21,8 +21,11 @@ class MonitoredRun:
                  extra: tuple[str, ...] = ()) -> None:
         self.root = root
         self.config = root / "robot.toml"
+        # patient thresholds: on a loaded machine a camera's 0.15 s stall would end the run
+        # (exit 3) before the browser has opened the page
         self.config.write_text(f'[camera]\nsource = "{source}"\nstart_timeout = 5\n'
-                               "[motors]\ni2c_retries = 1\n")
+                               "[motors]\ni2c_retries = 1\n"
+                               "[loop]\nmax_frame_age = 1.0\nwatchdog_timeout = 1.0\n")
         self.chip_file = root / "chip.json"
         self.chip = PCA9685Emulator(0x60, state_file=self.chip_file)
         env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(root / "run"))
