@@ -123,9 +123,18 @@ def test_a_run_directory_of_another_user_is_refused_and_nothing_in_it_is_followe
 
         with pytest.raises(UsageError, match=f"is owned by uid {hostile}"):
             sweep("forward", theirs, seeds=[1], timesteps=64, num_envs=1)
+        rootonly = tmp_path / "rootonly"
+        rootonly.mkdir(mode=0o700)
+        made = as_user(hostile, "import os, sys\nos.symlink(sys.argv[1], sys.argv[2])\n",
+                       str(rootonly), str(theirs / "rootonly"))
+        assert made.returncode == 0, made.stderr
+        result = train_here(capsys, *TINY, "--timesteps", "64", "--out",
+                            str(theirs / "rootonly" / "run"))
+        one_line_exit_2(result, f"is a symbolic link of uid {hostile}")
+        assert list(rootonly.iterdir()) == []
         assert time.monotonic() - started < HANG_S  # refused before any training
         untouched(found)
-        assert sorted(p.name for p in theirs.iterdir()) == sorted(PLANTED)
+        assert sorted(p.name for p in theirs.iterdir()) == sorted([*PLANTED, "rootonly"])
     finally:
         shutil.rmtree(theirs)
 
