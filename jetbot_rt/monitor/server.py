@@ -50,7 +50,8 @@ from jetbot_rt.monitor.config import Listen
 from jetbot_rt.monitor.observer import VIEWS, RunView
 
 MAX_CONNECTIONS = 32
-MAX_STREAMS = 12
+MAX_STREAMS = 16
+"""Five pages (each: two MJPEG images and the event stream) and a script."""
 MAX_REQUEST_BYTES = 8 * 1024
 REQUEST_TIMEOUT_S = 5.0
 SEND_TIMEOUT_S = 5.0
