@@ -73,3 +73,19 @@ def test_the_pipeline_cannot_be_changed_while_in_use():
     pipeline = ActionPipeline()
     with pytest.raises(dataclasses.FrozenInstanceError):
         pipeline.max_speed = 1.0  # type: ignore[misc]
+
+
+def test_the_config_builder_keeps_each_wheels_trim_and_sign_on_its_own_side():
+    from jetbot_rt.config.sections import ActionsConfig
+
+    actions = ActionsConfig(max_speed=0.5, trim=[0.8, 1.2], sign=[-1, 1])
+    pipeline = ActionPipeline.from_config(actions)
+    assert pipeline.trim == (0.8, 1.2)
+    assert pipeline.sign == (-1, 1)
+    assert pipeline.duties((1.0, 1.0)) == pytest.approx((-0.4, 0.6))
+
+
+@pytest.mark.parametrize("mu", [(), (0.5,)])
+def test_too_few_action_values_are_a_fault_too(mu):
+    with pytest.raises(Fault, match="expected 2"):
+        ActionPipeline().duties(mu)

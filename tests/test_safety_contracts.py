@@ -452,3 +452,102 @@ def test_a_write_that_lands_after_the_stop_it_did_not_wait_for_is_zeroed_again(
     else:
         assert chip.all_off(), f"the late write stayed on the board: {chip.duties()}"
         assert guarded.zero_confirmed is True
+
+
+class TestWhatTheStopSaysOnAnyClock:
+    """The seconds the stop reports are differences on the drive's clock, whatever its origin
+    (a monotonic clock may start anywhere: at boot, at 0, at a large value)."""
+
+    def test_a_recovered_stop_names_the_seconds_from_its_first_failure(self) -> None:
+        chip, latch, guarded = stepping_drive()
+        chip.fail_next = 8  # two zero writes of four transfers each fail, the third lands
+        assert latch.trip("burst")
+        assert chip.all_off()
+        # reads: 1st attempt (start, failure), 2nd (start, failure), 3rd start, its success:
+        # five steps after the first failure began
+        assert guarded.motors_line() == "confirmed zero after 2 failed zero writes in 0.078 s"
+
+    def test_a_drive_that_moved_and_was_never_stopped_says_its_zero_is_not_confirmed(
+            self) -> None:
+        _chip, drive = emulated_drive()
+        guarded = GuardedDrive(drive, SafeStopLatch(), retry_s=RETRY_S, clock=SteppingClock())
+        assert guarded.write(0.3, 0.3)
+        assert guarded.motors_line() == "NOT confirmed zero after 0 failed zero writes in 0.00 s: "
+
+    def test_the_watchdogs_silence_is_measured_from_the_last_kick_on_a_clock_near_zero(
+            self) -> None:
+        clock = ManualClock(start=2.0)
+        latch = SafeStopLatch()
+        watchdog = Watchdog(latch, TIMEOUT, clock=clock)
+        watchdog.start()
+        try:
+            clock.now += 3.5
+            assert latch.wait(LIVENESS_S)
+        finally:
+            watchdog.close()
+        assert latch.reason == ("watchdog: no tick for 3.500 s "
+                                "(limit [loop] watchdog_timeout = 0.25 s)")
+
+
+class StopStuckOnceDrive(WaveshareDrive):
+    """The Waveshare driver whose first zero write fails and whose second blocks in the
+    "driver" until released (an I2C transfer stuck in the kernel); later ones reach the chip."""
+
+    def __init__(self, bus: I2CBus) -> None:
+        super().__init__(bus, 0x60, 1600.0)
+        self.stops = 0
+        self.in_stop = threading.Event()
+        self.release = threading.Event()
+
+    def stop(self) -> None:
+        self.stops += 1
+        if self.stops == 1:
+            raise OSError(121, "Remote I/O error")
+        if self.stops == 2:
+            self.in_stop.set()
+            self.release.wait(LIVENESS_S * 6)
+            return
+        super().stop()
+
+
+def test_a_stop_behind_a_retrying_stop_stuck_in_the_driver_waits_only_for_its_window() -> None:
+    """The second stop waits for the first one's retry window (counted on the drive's clock
+    from the first failure), then goes out anyway: the zero reaches the board while the first
+    is still stuck."""
+    chip = PCA9685Emulator(0x60)
+    drive = StopStuckOnceDrive(I2CBus(chip, 1))
+    clock = ManualClock(start=1000.0)
+    guarded = GuardedDrive(drive, SafeStopLatch(), retry_s=0.5, clock=clock)
+    assert guarded.write(0.5, 0.5)
+    first = threading.Thread(target=guarded.stop, daemon=True)
+    first.start()
+    try:
+        assert drive.in_stop.wait(LIVENESS_S)
+        clock.now += 0.5  # the window since the first failure is over
+        second = threading.Thread(target=guarded.stop, daemon=True)
+        second.start()
+        second.join(LIVENESS_S)  # only catches a hang: the window is over, it waits ~0.05 s
+        assert not second.is_alive(), "the second stop waited past the first one's window"
+        assert chip.all_off(), chip.duties()
+        assert "a drive write in flight did not return; stopped anyway" in guarded.stop_errors
+    finally:
+        drive.release.set()
+        first.join(LIVENESS_S)
+
+
+def test_a_watchdog_left_running_does_not_keep_its_process_alive() -> None:
+    """A process that ends without closing its watchdog (an uncaught error on the way out)
+    exits at once: the watchdog's thread neither holds the interpreter open until its
+    timeout nor trips the latch during the exit."""
+    import subprocess
+    import sys
+
+    script = ("from jetbot_rt.runtime.safety import SafeStopLatch, Watchdog\n"
+              "latch = SafeStopLatch()\n"
+              "latch.on_trip(lambda reason: print('tripped', reason, flush=True))\n"
+              "Watchdog(latch, 3600.0).start()\n"
+              "print('started', flush=True)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=30)  # only catches a hang (the timeout is an hour)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == "started\n"
