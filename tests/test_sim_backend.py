@@ -7,7 +7,7 @@ import pytest
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import Fault, UsageError
-from jetbot_rt.hal import BackendOptions, make_backend
+from jetbot_rt.hal.registry import BackendOptions, make_backend
 
 TICK = 1 / 30
 

@@ -23,7 +23,7 @@ from fault_helpers import record_figures
 from runner import RuntimeProcess
 
 from jetbot_rt.config.sections import SIM_WATCHDOG_MIN_S, Config, LoopConfig
-from jetbot_rt.hal import BackendOptions, make_backend
+from jetbot_rt.hal.registry import BackendOptions, make_backend
 
 TICK = 1 / 30
 HICCUP_S = 0.4

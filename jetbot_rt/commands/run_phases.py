@@ -18,8 +18,9 @@ import numpy as np
 
 from jetbot_rt.commands.lifecycle import Phase
 from jetbot_rt.errors import Fault, UsageError, first_line
-from jetbot_rt.hal import BackendOptions, Robot, make_backend
+from jetbot_rt.hal.base import Robot
 from jetbot_rt.hal.i2c import emulator_notice
+from jetbot_rt.hal.registry import BackendOptions, make_backend
 from jetbot_rt.recording.recorder import Recorder
 from jetbot_rt.recording.recorder import open_for_run as open_recorder
 from jetbot_rt.runtime.actions import ActionPipeline

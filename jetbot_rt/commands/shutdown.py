@@ -12,7 +12,7 @@ from jetbot_rt.recording.recorder import recording_line
 
 if TYPE_CHECKING:
     from jetbot_rt.commands.lifecycle import Lifecycle
-    from jetbot_rt.hal import Robot
+    from jetbot_rt.hal.base import Robot
     from jetbot_rt.recording.recorder import Recorder
     from jetbot_rt.recording.telemetry import Telemetry
     from jetbot_rt.runtime.loop import LoopStats

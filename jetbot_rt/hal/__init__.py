@@ -1,7 +1,3 @@
-"""Hardware abstraction: ``Camera`` and ``Drive`` interfaces, the ``Robot`` that holds them, and
-the backend factory."""
-
-from jetbot_rt.hal.base import Camera, Drive, Frame, Robot
-from jetbot_rt.hal.registry import BackendOptions, make_backend
-
-__all__ = ["BackendOptions", "Camera", "Drive", "Frame", "Robot", "make_backend"]
+"""Hardware abstraction: ``base`` (the ``Camera`` and ``Drive`` interfaces, the ``Robot`` that
+holds them), ``registry`` (the backend factory) and the real backends (``gst_camera``,
+``motors`` on ``i2c``). Each name has one import path: its module's."""
