@@ -35,6 +35,7 @@ class Served:
     latch: SafeStopLatch
     port: int
     stop_feed: threading.Event
+    said: list[str]
 
     def request(self, method: str, path: str, headers: dict[str, str] | None = None,
                 ) -> tuple[int, dict[str, str], bytes]:
@@ -73,7 +74,7 @@ def serve(listen: str, token_file: str | None = None, shape: tuple[int, ...] = (
     feeder = threading.Thread(target=feed, args=(view, stats, stop, shape), daemon=True)
     feeder.start()
     try:
-        yield Served(server, latch, server.server_address[1], stop)
+        yield Served(server, latch, server.server_address[1], stop, lines)
     finally:
         stop.set()
         view.ended = {"reason": latch.reason, "fault": False, "exit_code": 0}
@@ -165,6 +166,8 @@ def test_a_page_that_rebinds_its_name_to_loopback_is_refused(local) -> None:
 def test_a_non_loopback_bind_needs_the_token_on_every_request(open_bind, tmp_path) -> None:
     token = read_token(tmp_path)
     assert os.stat(tmp_path / "token").st_mode & 0o777 == 0o600
+    (printed,) = [line for line in open_bind.said if token in line]  # said once
+    assert f"http://<this machine>:{open_bind.port}/?token={token}" in printed
     for path in ("/", "/state", "/frame.jpg", "/stream.mjpg", "/events", "/monitor.js"):
         status, headers, body = open_bind.request("GET", path)
         assert (status, body) == (403, b"forbidden\n"), path

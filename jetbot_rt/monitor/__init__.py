@@ -19,6 +19,7 @@ def start(config: MonitorConfig, view: RunView, on_stop: Callable[[str], None],
     """Bind (a port in use or an address not ours is bad input: ``UsageError``, before the
     robot connects), settle the token, serve in threads of its own."""
     import errno
+    import ipaddress
 
     from jetbot_rt.monitor import token as tokens
     from jetbot_rt.monitor.server import MonitorServer
@@ -42,7 +43,10 @@ def start(config: MonitorConfig, view: RunView, on_stop: Callable[[str], None],
         if new_token:
             where = (f", saved in {config.token_file} (mode 0600)" if config.token_file
                      else "")
-            say(f"monitor: token required on {listen.host}; open {server.url}?token={token} "
+            url = server.url
+            if ipaddress.ip_address(listen.host).is_unspecified:  # every address: name none
+                url = f"http://<this machine>:{server.server_address[1]}/"
+            say(f"monitor: token required on {listen.host}; open {url}?token={token} "
                 f"once{where}")
         else:
             say(f"monitor: token required on {listen.host}: the one in {config.token_file}")
