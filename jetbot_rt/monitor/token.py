@@ -26,8 +26,9 @@ def read_token(path: str) -> str:
     """The token in ``path``, or ``UsageError``: a file others may read or write (or not ours,
     or a link) would let someone else stop the robot or read the page."""
     fd = safe_file.open_regular(path, "[monitor] token_file", follow_links=False)
-    try:
+    try:  # checked and read through one descriptor: what was checked is what is read
         info = os.fstat(fd)
+        data = os.read(fd, MAX_TOKEN_BYTES + 1)
     finally:
         os.close(fd)
     if info.st_mode & 0o077:
@@ -37,8 +38,10 @@ def read_token(path: str) -> str:
     if info.st_uid != os.geteuid():
         raise UsageError(f"[monitor] token_file {safe_file.shown(path)} belongs to uid "
                          f"{info.st_uid}, not to this user")
-    text = safe_file.read_text(path, "[monitor] token_file", MAX_TOKEN_BYTES,
-                               follow_links=False).strip()
+    if len(data) > MAX_TOKEN_BYTES:
+        raise UsageError(f"[monitor] token_file {safe_file.shown(path)} is larger than "
+                         f"{MAX_TOKEN_BYTES} bytes")
+    text = safe_file.decode(data, path, "[monitor] token_file").strip()
     if len(text) < MIN_TOKEN_CHARS or not set(text) <= TOKEN_CHARS:
         raise UsageError(f"[monitor] token_file {safe_file.shown(path)}: the token must be at "
                          f"least {MIN_TOKEN_CHARS} characters of A-Z a-z 0-9 - . _ ~")
