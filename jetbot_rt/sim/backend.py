@@ -112,6 +112,11 @@ class SimRobot(Robot):
         self._travelled_m = 0.0
         self._goal_distance_m = self._goal_distance()
 
+    @property
+    def world(self) -> JetbotWorld:
+        """The world this robot drives in (the calibration places its marker in it)."""
+        return self._world
+
     def _goal_distance(self) -> float | None:
         world = self._world
         return world.distance("goal") if world.has_piece("goal") else None

@@ -26,8 +26,8 @@ def place_marker(robot: SimRobot, distance: float, marker_size: float,
                  centre_height: float) -> None:
     """Stand the page ``distance`` m ahead of the robot's axle, on its heading, its marker's
     black square ``marker_size`` m wide with its centre ``centre_height`` m above the floor."""
-    world = robot._world  # the world is the sim backend's own; the calibration borrows it
-    client = world._client
+    world = robot.world
+    client = world.client
     x, y, yaw = world.robot_pose()
     cx, cy = x + distance * math.cos(yaw), y + distance * math.sin(yaw)
     half = marker_size * PAGE_CELLS / MARKER_CELLS / 2

@@ -327,6 +327,12 @@ class JetbotWorld:
         com_pos, com_orn = p.getBasePositionAndOrientation(self._robot, physicsClientId=c)
         return p.multiplyTransforms(com_pos, com_orn, *self._com_to_link, physicsClientId=c)
 
+    @property
+    def client(self) -> int:
+        """The PyBullet client id: for scene pieces added from outside (the calibration's
+        marker)."""
+        return self._client
+
     def robot_pose(self) -> tuple[float, float, float]:
         """x, y (m) and yaw (rad) of base_link, the axle midpoint."""
         (x, y, _), (qx, qy, qz, qw) = self._robot_frame()
