@@ -1,7 +1,7 @@
 """``jetbot-rt run``, in phases as ros2_control's lifecycle has them: configure (flags and file
 to a ``Config``, before anything else) -> services (control socket, service manager) -> load
-(the policy) -> prepare (action pipeline, recorder) -> connect (the robot, its drive guarded by
-the latch) -> start camera -> warm up (first inference) -> pace gui -> drive (the loop) -> stop
+(the policy) -> prepare (action pipeline, recorder) -> monitor (the live page, if asked) ->
+connect (the robot, its drive guarded by the latch) -> start camera -> warm up (first inference) -> pace gui -> drive (the loop) -> stop
 (``Shutdown``: every phase's exit in reverse, motors zero last, the ``Summary``). The phases
 are in ``run_phases``, their driver in ``lifecycle``.
 
