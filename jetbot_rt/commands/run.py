@@ -1,9 +1,10 @@
 """``jetbot-rt run``, in phases as ros2_control's lifecycle has them: configure (flags and file
 to a ``Config``, before anything else) -> services (control socket, service manager) -> load
 (the policy) -> prepare (action pipeline, recorder) -> monitor (the live page, if asked) ->
-connect (the robot, its drive guarded by the latch) -> start camera -> warm up (first inference) -> pace gui -> drive (the loop) -> stop
-(``Shutdown``: every phase's exit in reverse, motors zero last, the ``Summary``). The phases
-are in ``run_phases``, their driver in ``lifecycle``.
+connect (the robot, its drive guarded by the latch) -> start camera -> warm up (first
+inference) -> pace gui -> drive (the loop) -> stop (``Shutdown``: every phase's exit in
+reverse, motors zero last, the ``Summary``). The phases are in ``run_phases``, their driver in
+``lifecycle``.
 
 Threads: the control loop runs in its own thread so that the main thread stays free for
 signals and can end the process even when a tick hangs inside native code (onnxruntime, a
