@@ -174,6 +174,10 @@ EQUIVALENT = [
                "an unparsable WATCHDOG_PID must name no process: -1, 0, -2 and False all do "
                "(only a positive pid can equal ours); +1 differs only for a runtime that is "
                "PID 1 itself (a container's init), which no test here can be"),
+    Equivalent("jetbot_rt/runtime/loop.py", "break", ("continue",),
+               "every break in ControlLoop.run follows a latch.trip (or a latch.wait that "
+               "returned True): the while loop's own test, not self.latch.tripped, ends it "
+               "at once either way, and nothing runs between"),
     Equivalent("jetbot_rt/runtime/policy.py", _DIM, (_DIM.replace("value > 0", "value != 0"),),
                "onnxruntime reports an unknown or negative dimension as None or a name, never "
                "a negative int (checked: dim_value -1 reads back as None)"),

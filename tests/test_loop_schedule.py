@@ -17,7 +17,7 @@ from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
 from jetbot_rt.recording.telemetry import Telemetry
 from jetbot_rt.runtime.actions import ActionPipeline
-from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain
+from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain, TickObserver, TickResult
 from jetbot_rt.runtime.safety import GuardedDrive, SafeStopLatch
 from jetbot_rt.testing.null_robot import PartsRobot
 from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
@@ -118,7 +118,7 @@ class SteppingRobot(PartsRobot):
 
 def run_loop(durations: dict[int, float], duration: float, late: dict[int, float] | None = None,
              telemetry: Telemetry | None = None, frame_age: float = 0.0, write_s: float = 0.0,
-             advance_s: float | None = None,
+             advance_s: float | None = None, observers: list[TickObserver] | None = None,
              ) -> tuple[ControlLoop, TimedPolicy, SimulatedTimeLatch, PCA9685Emulator]:
     clock = SimulatedClock()
     latch = SimulatedTimeLatch(clock, late)
@@ -134,7 +134,7 @@ def run_loop(durations: dict[int, float], duration: float, late: dict[int, float
         robot=robot, policy=policy, actions=ActionPipeline(),
         safety=StopChain(latch, drive),
         schedule=Schedule(PERIOD, max_frame_age=1000.0, clock=clock),
-        observers=[telemetry.observe] if telemetry is not None else [],
+        observers=([telemetry.observe] if telemetry is not None else []) + (observers or []),
     )
     loop.run(duration=duration)
     return loop, policy, latch, chip
@@ -250,3 +250,36 @@ class TestStaleFrameReason:
         assert latch.fault
         assert latch.reason == "stale frame: 375 ms old (limit [loop] max_frame_age = 0.25 s)"
         assert loop.stats.ticks == 0 and chip.all_off()
+
+
+class TestWhatObserversGet:
+    def test_a_ticks_end_is_when_its_write_returned_not_after_the_sim_step(self) -> None:
+        results: list[TickResult] = []
+        run_loop({2: PERIOD / 8}, duration=3 * PERIOD, write_s=PERIOD / 16,
+                 advance_s=PERIOD / 4, observers=[results.append])
+        assert [(r.t_start, r.t_end) for r in results] == [
+            (0.0, 0.015625), (0.25, 0.296875), (0.5, 0.515625)]
+
+    def test_the_record_of_a_tick_rounds_durations_to_the_microsecond_and_keeps_the_backends_fields(
+            self) -> None:
+        result = TickResult(
+            tick=3, t_start=10.5, deadline=10.5, image=np.zeros((2, 2, 3), np.uint8),
+            frame_index=7, frame_age_ms=1.23456, mu=[0.5, -0.5], cmd=(0.05, -0.05),
+            infer_ms=2.00049, tick_ms=3.00051, write_ms=0.99949, advance_ms=4.44444, overruns=1,
+            extra={"pose": [1.0, 2.0, 0.5], "sim_time": 0.75})
+        assert result.record(t0=10.0) == {
+            "t": 0.5, "tick": 3, "state": "driving", "mu": [0.5, -0.5], "cmd": [0.05, -0.05],
+            "frame_age_ms": 1.235, "infer_ms": 2.0, "tick_ms": 3.001, "overruns": 1,
+            "late_ms": 0.0, "write_ms": 0.999, "advance_ms": 4.444,
+            "pose": [1.0, 2.0, 0.5], "sim_time": 0.75}
+
+    @pytest.mark.parametrize("name", ["result", "schedule", "chain"])
+    def test_what_the_loop_hands_out_cannot_be_changed_by_its_receiver(self, name: str) -> None:
+        import dataclasses
+
+        results: list[TickResult] = []
+        loop, _, _, _ = run_loop({}, duration=PERIOD, observers=[results.append])
+        target, field = {"result": (results[0], "cmd"), "schedule": (loop.schedule, "period"),
+                         "chain": (loop.safety, "watchdog")}[name]
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(target, field, None)

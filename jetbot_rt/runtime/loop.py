@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -127,8 +127,7 @@ class StopChain:
     watchdog: Watchdog | None = None
 
 
-@dataclass(frozen=True)
-class _Written:
+class _Written(NamedTuple):
     """What the read -> update -> write part of a tick did, with its clock readings."""
 
     frame: Frame
