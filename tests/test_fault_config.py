@@ -96,8 +96,9 @@ def test_ticks_further_apart_than_the_units_watchdog_allows_are_refused(
 
 @pytest.mark.parametrize("rate", ["2", "5"])
 def test_slow_rates_run_with_the_derived_frame_age(tmp_path: Path, rate: str) -> None:
-    """Issue 9: every sim rate at or below 6.67 Hz stopped on its second tick (stale frame,
-    max_frame_age 0.15 s shorter than the period). The default now follows the period."""
+    """At slow rates a fixed frame age would be shorter than the period (at or below 6.67 Hz,
+    0.15 s): the derived default follows the period, so the run drives instead of stopping on
+    its second tick."""
     policy = policy_models.constant(tmp_path / "p.onnx", (0.5, 0.5))
     telemetry = tmp_path / "t.jsonl"
     patient = tmp_path / "patient.toml"  # the watchdog is not the point (starved: it trips)

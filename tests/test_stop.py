@@ -370,8 +370,9 @@ class TestStopNeverReportsAnOffItCouldNotWrite:
 
     def test_the_old_environment_variable_chooses_no_emulator(self, tmp_path: Path,
                                                               monkeypatch) -> None:
-        """Issue 12: a stray ``JETBOT_RT_I2C_EMULATOR`` (which once swapped the board for the
-        emulator, in production too) is ignored: the stop goes to the configured bus."""
+        """A stray ``JETBOT_RT_I2C_EMULATOR`` in the environment chooses nothing: only the
+        explicit flag swaps the board for the emulator, so the stop goes to the configured
+        bus."""
         monkeypatch.setenv("JETBOT_RT_I2C_EMULATOR", str(tmp_path / "chip.json"))
         result = self.stop_without_emulator(tmp_path, "[motors]\ni2c_bus = 7\n")
         assert result.returncode == 1, result.stdout + result.stderr

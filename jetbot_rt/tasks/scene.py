@@ -34,8 +34,8 @@ COLORS: dict[str, tuple[float, float, float]] = {
     "black": (0.05, 0.05, 0.05),
     "grey": (0.5, 0.5, 0.5),
 }
-"""Named colours (RGB in [0, 1]); red, green and blue are the blocks' colours of the seed's
-scenes."""
+"""Named colours (RGB in [0, 1]); red, green and blue are the blocks' colours of the built-in
+tasks' scenes."""
 
 ROOM_HALF_SIZE = 1.5
 """m; the walls' inner faces stand at x, y = +-this."""
