@@ -307,3 +307,15 @@ def test_a_port_in_use_is_refused_at_start() -> None:
                   say=lambda _line: None)
     finally:
         taken.close()
+
+
+def test_a_stop_with_a_body_is_answered_and_a_large_body_refused(local) -> None:
+    conn = http.client.HTTPConnection("127.0.0.1", local.port, timeout=10)
+    conn.request("POST", "/stop", body=b"x" * 20_000)
+    reply = conn.getresponse()
+    assert reply.status == 431 and not local.latch.tripped
+    conn.close()
+    conn = http.client.HTTPConnection("127.0.0.1", local.port, timeout=10)
+    conn.request("POST", "/stop", body=b"please")
+    assert conn.getresponse().status == 200 and local.latch.tripped
+    conn.close()

@@ -93,6 +93,13 @@ class _BoundedReader:
             raise RequestTooLarge
         return bytes(line)
 
+    def read(self, size: int) -> bytes:
+        if size > self.left:
+            raise RequestTooLarge
+        data = bytes(self.raw.read(size))
+        self.left -= len(data)
+        return data
+
     def close(self) -> None:
         self.raw.close()
 
@@ -362,6 +369,10 @@ class MonitorHandler(BaseHTTPRequestHandler):
         self._send(HTTPStatus.NOT_FOUND, b"not found\n")
 
     def do_POST(self) -> None:
+        # a body (none is needed) is read within the request's bound, so that closing the
+        # connection does not reset it before the client has the answer
+        length = self.headers.get("Content-Length", "0").strip()
+        self.rfile.read(int(length) if length.isdigit() else MAX_REQUEST_BYTES + 1)
         if not self._allowed():
             return self._forbid()
         if urlsplit(self.path).path != "/stop":
