@@ -18,7 +18,8 @@ anything here, and ``jetbot-rt stop`` and signals do not go through here):
 - ``MAX_CONNECTIONS`` open at once; at the limit a new one evicts the oldest that has not
   finished sending its request, and beyond that is closed unanswered.
 - a request (line and headers) within ``MAX_REQUEST_BYTES`` and ``REQUEST_TIMEOUT_S`` in all
-  (a reaper closes slower ones: one byte a second does not keep a thread); no body is read.
+  (a reaper closes slower ones: one byte a second does not keep a thread); a POST's body
+  within the same bound.
 - ``MAX_STREAMS`` streams at once (503 beyond); a stream write that waits longer than
   ``SEND_TIMEOUT_S`` (a client that never reads) ends that stream.
 - HTTP/1.0: one request per connection.
