@@ -176,8 +176,8 @@ EQUIVALENT = [
                "PID 1 itself (a container's init), which no test here can be"),
     Equivalent("jetbot_rt/runtime/loop.py", "break", ("continue",),
                "every break in ControlLoop.run follows a latch.trip (or a latch.wait that "
-               "returned True): the while loop's own test, not self.latch.tripped, ends it "
-               "at once either way, and nothing runs between"),
+               "returned True), so the latch is tripped: with continue, the while loop's own "
+               "test (while not self.latch.tripped) ends it at once, nothing run between"),
     Equivalent("jetbot_rt/runtime/policy.py", _DIM, (_DIM.replace("value > 0", "value != 0"),),
                "onnxruntime reports an unknown or negative dimension as None or a name, never "
                "a negative int (checked: dim_value -1 reads back as None)"),

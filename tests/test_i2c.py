@@ -157,3 +157,16 @@ def test_scan_covers_every_7_bit_address_from_0x03_to_0x77(address) -> None:
 @pytest.mark.parametrize("reserved", [0x00, 0x02, 0x78, 0x7F])
 def test_scan_never_probes_a_reserved_address(reserved) -> None:
     assert I2CBus(PCA9685Emulator(reserved), 1).scan() == []
+
+
+def test_each_retry_waits_a_millisecond_longer_than_the_one_before(chip) -> None:
+    waits: list[float] = []
+    bus = I2CBus(chip, 1, retries=3, sleep=waits.append)
+    chip.update(fail_next=3)
+    bus.writeto(ADDR, bytes((MODE1, 0x20)))
+    assert waits == pytest.approx([0.001, 0.002, 0.003])
+    waits.clear()
+    chip.update(fail_next=4)
+    with pytest.raises(I2CFault):
+        bus.writeto(ADDR, bytes((MODE1, 0x20)))
+    assert waits == pytest.approx([0.001, 0.002, 0.003]), "no wait after the last attempt"

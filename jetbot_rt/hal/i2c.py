@@ -22,6 +22,7 @@ from jetbot_rt.errors import Fault, UsageError
 
 if TYPE_CHECKING:
     import argparse
+    from collections.abc import Callable
 
     from jetbot_rt.config.sections import MotorsConfig
 
@@ -83,10 +84,13 @@ class I2CBus:
     """``busio.I2C``'s interface over an ``smbus2.SMBus``-like object (``i2c_rdwr``,
     ``write_quick``)."""
 
-    def __init__(self, smbus: Any, bus_number: int, retries: int = 3) -> None:
+    def __init__(self, smbus: Any, bus_number: int, retries: int = 3, *,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
         self.smbus = smbus
         self.bus_number = bus_number
         self.retries = retries
+        self.sleep = sleep
+        """Waits between retries (a test records them instead)."""
         self.retried = 0
         """Transfers that failed with ``OSError`` and were tried again (ridden-through noise
         and the failed attempts before an ``I2CFault`` alike): the run summary reports it."""
@@ -219,4 +223,4 @@ class I2CBus:
                         f"[motors] i2c_retries = {self.retries})"
                     ) from exc
                 self.retried += 1
-                time.sleep(RETRY_DELAY_S * attempt)
+                self.sleep(RETRY_DELAY_S * attempt)
