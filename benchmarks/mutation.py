@@ -174,6 +174,11 @@ EQUIVALENT = [
                "an unparsable WATCHDOG_PID must name no process: -1, 0, -2 and False all do "
                "(only a positive pid can equal ours); +1 differs only for a runtime that is "
                "PID 1 itself (a container's init), which no test here can be"),
+    Equivalent("jetbot_rt/commands/stop.py", "time.sleep(0.02)", (), "the poll period "
+               "of the wait for the bus's owner to end: owned() is read again after the loop, "
+               "so a longer poll changes only how soon (by under a second) stop notices, never "
+               "what it reports or its exit; only a timing assertion could see it",
+               operator="NumberReplacer"),
     Equivalent("jetbot_rt/runtime/loop.py", "break", ("continue",),
                "every break in ControlLoop.run follows a latch.trip (or a latch.wait that "
                "returned True), so the latch is tripped: with continue, the while loop's own "
