@@ -177,8 +177,8 @@ EQUIVALENT = [
     Equivalent("jetbot_rt/commands/stop.py", "time.sleep(0.02)", (), "the poll period "
                "of the wait for the bus's owner to end: owned() is read again after the loop, "
                "so a longer poll changes only how soon (by under a second) stop notices, never "
-               "what it reports or its exit; only a timing assertion could see it",
-               operator="NumberReplacer"),
+               "what it reports or its exit; only a timing assertion could see it (a negative "
+               "sleep raises: not equivalent)", operator="NumberReplacer", unless="-"),
     Equivalent("jetbot_rt/runtime/loop.py", "break", ("continue",),
                "every break in ControlLoop.run follows a latch.trip (or a latch.wait that "
                "returned True), so the latch is tripped: with continue, the while loop's own "
