@@ -56,6 +56,9 @@ OUT_OF_RANGE = {
     ("camera", "flip_method"): 8,
     ("camera", "start_timeout"): 0,
     ("telemetry", "path"): None,  # any string is a path: an unwritable one is a case below
+    ("monitor", "listen"): "robot.local:8080",
+    ("monitor", "token_file"): "",
+    ("monitor", "max_fps"): 0,
     ("sim", "physics_hz"): -240.0,
     ("sim", "motor_gain"): 0,
     ("sim", "motor_tau"): -0.05,
