@@ -179,6 +179,12 @@ EQUIVALENT = [
                "so a longer poll changes only how soon (by under a second) stop notices, never "
                "what it reports or its exit; only a timing assertion could see it (a negative "
                "sleep raises: not equivalent)", operator="NumberReplacer", unless="-"),
+    Equivalent("jetbot_rt/service/runtime_dir.py",
+               "_DIR_FLAGS = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC",
+               ("_DIR_FLAGS = os.O_RDONLY ^ os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC",
+                "_DIR_FLAGS = os.O_RDONLY + os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC"),
+               "O_RDONLY is 0 (POSIX leaves it to the system; Linux, the only target, defines "
+               "it 0): 0 ^ x and 0 + x are 0 | x"),
     Equivalent("jetbot_rt/runtime/loop.py", "break", ("continue",),
                "every break in ControlLoop.run follows a latch.trip (or a latch.wait that "
                "returned True), so the latch is tripped: with continue, the while loop's own "

@@ -182,3 +182,83 @@ def test_a_readable_config_wins_over_the_record(run_dir: Path, tmp_path: Path) -
                   str(tmp_path / "chip.json"))
     assert result.returncode == 0, result.stdout + result.stderr
     assert "I2C bus 1 address 0x60" in result.stdout and chip.refresh().sleeping
+
+
+# ---- the directories themselves (runtime_dir's /tmp and /run rules) ---------------------------
+
+
+@needs_root
+def test_the_tmp_fallback_held_by_another_user_gives_way_to_our_own_alternative(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Another user made ``/tmp/jetbot-rt-<uid>`` first: the runtime takes the first
+    ``/tmp/jetbot-rt-<uid>.*`` that is its own (closed to others again), passing over one of
+    that user's, instead of a new one per run. ``/tmp`` is this test's own directory."""
+    from jetbot_rt.service import runtime_dir
+
+    monkeypatch.setattr(runtime_dir, "TMP", tmp_path)
+    hostile, me = unused_uid(), os.getuid()
+    taken = tmp_path / f"jetbot-rt-{me}"
+    theirs = tmp_path / f"jetbot-rt-{me}.a"
+    for path in (taken, theirs):
+        path.mkdir(0o700)
+        os.chown(path, hostile, hostile)
+    mine = tmp_path / f"jetbot-rt-{me}.b"
+    mine.mkdir()
+    os.chmod(mine, 0o755)
+    assert runtime_dir.private_dir(taken) == mine
+    assert stat.S_IMODE(mine.stat().st_mode) == 0o700
+    assert sorted(p.name for p in tmp_path.iterdir()) == [taken.name, theirs.name, mine.name]
+
+
+@needs_root
+@pytest.mark.parametrize(("run_mode", "service_mode", "trusted"), [
+    (0o755, 0o700, True), (0o777, 0o700, False), (0o755, 0o770, False)])
+def test_root_trusts_the_service_directory_whoever_owns_it_only_under_a_run_of_roots_alone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, run_mode: int, service_mode: int,
+        trusted: bool) -> None:
+    """``/run/jetbot-rt`` made by systemd for the service's user is root's to use too, as
+    long as only root can have put it there (``/run`` root's, closed to others) and it is
+    closed to others itself. ``/run`` is this test's own directory."""
+    from jetbot_rt.errors import UsageError
+    from jetbot_rt.service import runtime_dir
+
+    run = tmp_path / "run"
+    run.mkdir()
+    os.chmod(run, run_mode)
+    service = run / "jetbot-rt"
+    service.mkdir()
+    os.chmod(service, service_mode)
+    hostile = unused_uid()
+    os.chown(service, hostile, hostile)
+    monkeypatch.setattr(runtime_dir, "SERVICE_DIR", service)
+    if trusted:
+        assert runtime_dir.private_dir(service) == service
+        assert stat.S_IMODE(service.stat().st_mode) == service_mode  # not root's to change
+    else:
+        with pytest.raises(UsageError, match="not this user's own"):
+            runtime_dir.private_dir(service)
+
+
+def test_stop_trusts_only_real_sockets_in_its_directory(run_dir: Path, tmp_path: Path) -> None:
+    """A file or a link named like a control socket is passed over and named, a real
+    socket beside them is found."""
+    import socket
+
+    from jetbot_rt.service.runtime_dir import search
+
+    (run_dir / "control-1.sock").write_text("")
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        listener.bind(str(tmp_path / "elsewhere.sock"))
+        (run_dir / "control-2.sock").symlink_to(tmp_path / "elsewhere.sock")
+        real = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            real.bind(str(run_dir / "control-3.sock"))
+            found = search("control-*.sock", 4)
+        finally:
+            real.close()
+    finally:
+        listener.close()
+    assert found.sockets == [run_dir / "control-3.sock"]
+    assert sorted(found.ignored) == [f"{run_dir / 'control-1.sock'} (not a socket)",
+                                     f"{run_dir / 'control-2.sock'} (a symbolic link)"]
