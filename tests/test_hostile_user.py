@@ -637,3 +637,33 @@ def test_an_owner_lock_file_another_user_planted_refuses_run_and_leaves_stop_con
     (line,) = run.stderr.splitlines()
     expected = "a symbolic link" if planted == "a link" else f"owned by uid {hostile}"
     assert f"{lock_file} is {expected}" in line, line
+
+
+@needs_root
+def test_a_user_trusts_a_board_record_root_left_in_the_users_own_directory() -> None:
+    """A run under sudo with the user's ``JETBOT_RT_RUNTIME_DIR`` leaves root's board record
+    in the user's directory: the user's ``stop`` trusts it (root's files are trusted
+    wherever they are); the same file owned by a third user it does not."""
+    import json
+    import tempfile
+
+    user, third = unused_uid(), unused_uid()
+    directory = Path(tempfile.mkdtemp(prefix="hostile-record-", dir="/tmp"))
+    try:
+        record = directory / "board.json"
+        record.write_text(json.dumps({"i2c_bus": 1, "address": 0x60, "pid": os.getpid(),
+                                      "emulator": None}))
+        os.chmod(record, 0o644)
+        os.chown(directory, user, user)
+        code = ("from jetbot_rt.service.runtime_dir import search\n"
+                "found = search()\n"
+                "print(json.dumps([[str(p), uid] for p, uid in found.records]))\n")
+        env = dict(user_env(), JETBOT_RT_RUNTIME_DIR=str(directory))
+        result = as_user(user, code, modules=("jetbot_rt.service.runtime_dir",), env=env)
+        assert result.returncode == 0, result.stderr
+        assert json.loads(result.stdout) == [[str(record), user]]
+        os.chown(record, third, third)
+        result = as_user(user, code, modules=("jetbot_rt.service.runtime_dir",), env=env)
+        assert json.loads(result.stdout) == [], result.stdout
+    finally:
+        shutil.rmtree(directory, ignore_errors=True)
