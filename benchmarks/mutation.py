@@ -395,6 +395,9 @@ def describe(mutant: Mutant, source: str) -> bool:
 
 
 def make_worker(base: Path, index: int) -> Path:
+    # tests/test_hostile_user.py runs the copy's interpreter and code as a second uid, which
+    # imports modules lazily: mkdtemp's 0700 would hide them (ModuleNotFoundError)
+    base.chmod(0o755)
     copy = base / f"worker-{index}"
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=ROOT,
                            capture_output=True, check=True).stdout.decode().split("\0")
