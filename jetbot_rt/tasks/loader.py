@@ -40,7 +40,20 @@ def _seek() -> type[Task]:
     return Seek
 
 
-BUILTIN: dict[str, Callable[[], type[Task]]] = {"forward": _forward, "seek": _seek}
+def _follow() -> type[Task]:
+    from jetbot_rt.tasks.follow import Follow
+
+    return Follow
+
+
+def _avoid() -> type[Task]:
+    from jetbot_rt.tasks.avoid import Avoid
+
+    return Avoid
+
+
+BUILTIN: dict[str, Callable[[], type[Task]]] = {"forward": _forward, "seek": _seek,
+                                                "follow": _follow, "avoid": _avoid}
 """The tasks that ship with the package, by name."""
 DEFAULT_TASK = "forward"
 
