@@ -60,7 +60,27 @@ def as_user(uid: int, code: str, *args: str, modules: tuple[str, ...] = (),
                           env=user_env() if env is None else dict(env, HOME="/"), **popen)
 
 
+def _robot_side_modules() -> tuple[str, ...]:
+    """Every module of the robot side. The second uid may not be able to read the checkout
+    (a clone in a 0700 directory): whatever the code under test imports lazily later must be
+    imported before the drop."""
+    package = Path(__file__).resolve().parent.parent / "jetbot_rt"
+    names = []
+    for path in sorted(package.rglob("*.py")):
+        parts = path.relative_to(package.parent).with_suffix("").parts
+        if parts[1] in ("sim", "train", "tasks", "calibration") or parts[-1] in (
+                "__main__", "calibrate", "report", "replay"):
+            continue
+        names.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return tuple(names)
+
+
+ROBOT_SIDE_MODULES = _robot_side_modules()
+
+
 def command(uid: int, code: str, *args: str, modules: tuple[str, ...] = ()) -> list[str]:
+    if any(name.startswith("jetbot_rt") for name in modules):
+        modules = (*modules, *ROBOT_SIDE_MODULES)
     return [sys.executable, "-c", _PRELUDE + code, str(uid), ",".join(modules), *args]
 
 
