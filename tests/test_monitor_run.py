@@ -102,3 +102,24 @@ def test_install_service_allows_ip_sockets_only_when_the_config_serves_the_monit
     assert main(["install-service", "--root", str(tmp_path), "--user", "root", "--force"]) == 0
     assert "RestrictAddressFamilies=AF_UNIX AF_NETLINK AF_INET AF_INET6\n" in unit.read_text()
     assert "allows IP sockets" in capsys.readouterr().out
+
+
+def test_a_sim_runs_page_state_has_its_trajectory_and_the_goal(run) -> None:
+    sim = run(backend="sim")
+    url = sim.url()
+    deadline = time.monotonic() + 30
+    state: dict = {}
+    while time.monotonic() < deadline:
+        status, body = get(url, "/state")
+        assert status == 200
+        state = json.loads(body)
+        if len(state.get("trajectory", ())) >= 3:
+            break
+        time.sleep(0.2)
+    assert len(state["trajectory"]) >= 3, state
+    # forward's goal: the red block 0.9 m straight ahead of the start (the world's +x)
+    gx, gy = state["goal"]
+    assert abs(gx - state["trajectory"][0][0] - 0.9) < 0.15 and abs(gy) < 0.15, state
+    assert get(url, "/stop", "POST")[0] == 200
+    code, err = sim.finish()
+    assert code == 0, err

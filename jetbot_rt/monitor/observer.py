@@ -100,6 +100,9 @@ class RunView:
             out["recording"] = self.recorder.counts()
         if trajectory and self.trajectory:
             out["trajectory"] = list(self.trajectory)
+            goal = latest.extra.get("goal") if latest is not None else None
+            if isinstance(goal, list) and len(goal) == 2:
+                out["goal"] = goal
         if self.ended is not None:
             out["ended"] = self.ended
         return out

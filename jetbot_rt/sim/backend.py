@@ -138,6 +138,8 @@ class SimRobot(Robot):
                                     "sim_time": self._world.sim_time}
         if self._goal_distance_m is not None:
             state["goal_distance"] = self._goal_distance_m
+            x, y, _ = self._world.position("goal")
+            state["goal"] = [round(x, 3), round(y, 3)]
         return state
 
     def stats(self) -> dict[str, float]:

@@ -24,13 +24,14 @@ function showState(s) {
   $("reason").textContent = s.reason || "";
 }
 
-function drawTrajectory(points) {
+function drawTrajectory(points, goal) {
   const canvas = $("trajectory");
   if (!points || points.length < 1) return;
   canvas.hidden = false;
   const ctx = canvas.getContext("2d");
-  // the path's bounding box, at least 1 m across, centred: the robot's moves stay visible
-  const xs = points.map((p) => p[0]), ys = points.map((p) => p[1]);
+  // the box around the path and the goal, at least 1 m across, centred
+  const all = goal ? points.concat([goal]) : points;
+  const xs = all.map((p) => p[0]), ys = all.map((p) => p[1]);
   const cx = (Math.min(...xs) + Math.max(...xs)) / 2, cy = (Math.min(...ys) + Math.max(...ys)) / 2;
   const span = Math.max(1, Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys)) * 1.2;
   const scale = Math.min(canvas.width, canvas.height) / span;
@@ -41,6 +42,11 @@ function drawTrajectory(points) {
   ctx.beginPath();
   points.forEach((p, i) => { const [x, y] = px(p); i ? ctx.lineTo(x, y) : ctx.moveTo(x, y); });
   ctx.stroke();
+  if (goal) {
+    const [gx, gy] = px(goal);
+    ctx.fillStyle = "#d62c2c";
+    ctx.fillRect(gx - 5, gy - 5, 10, 10);
+  }
   const [x, y] = px(points[points.length - 1]);
   ctx.fillStyle = "#fff";
   ctx.beginPath(); ctx.arc(x, y, 4, 0, 2 * Math.PI); ctx.fill();
@@ -68,7 +74,7 @@ function update(s) {
   const rec = s.recording;
   $("recording").textContent = !rec ? "off" : (rec.error ? "stopped: " + rec.error :
     rec.frames_written + " frames written, " + rec.frames_dropped + " dropped");
-  if (s.trajectory) drawTrajectory(s.trajectory);
+  if (s.trajectory) drawTrajectory(s.trajectory, s.goal);
   if (s.ended) end(s);
 }
 
