@@ -70,9 +70,11 @@ def test_telemetry_reports_pose_and_sim_time(backend):
     backend.camera.start()
     advance(backend, 1.0)
     extra = backend.state()
-    assert set(extra) == {"pose", "sim_time", "goal_distance"}
+    assert set(extra) == {"pose", "sim_time", "goal_distance", "goal"}
     assert extra["sim_time"] == pytest.approx(1.0)
     assert extra["pose"] == pytest.approx([-0.6, 0.0, 0.0], abs=1e-3)
+    assert extra["goal"] == pytest.approx([0.3, 0.0], abs=0.01)  # 0.9 m ahead of the start
+    assert extra["goal_distance"] == pytest.approx(0.9, abs=0.01)
 
 
 def test_non_finite_duty_is_a_fault(backend):
