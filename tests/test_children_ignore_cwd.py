@@ -114,3 +114,14 @@ def test_the_trainers_worker_processes_never_import_from_the_working_directory(t
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["episodes"] == 2
     assert sorted(os.listdir(markers)) == []
+
+
+def test_the_safe_path_switch_is_set_only_while_the_trainers_workers_start(monkeypatch):
+    """A script this process runs afterwards by name (``python tests/x.py``) needs its own
+    directory on ``sys.path``: ``PYTHONSAFEPATH`` must not stay in the environment."""
+    from jetbot_rt.train.evaluate import evaluate
+
+    monkeypatch.delenv("PYTHONSAFEPATH", raising=False)
+    result = evaluate(task="forward", episodes=2, num_workers=2, progress=False)
+    assert result["episodes"] == 2
+    assert "PYTHONSAFEPATH" not in os.environ

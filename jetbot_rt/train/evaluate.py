@@ -15,6 +15,7 @@ Blind baselines and seam ablations (``ablate``), on the same episodes:
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
 from dataclasses import replace
@@ -30,7 +31,7 @@ from jetbot_rt.tasks import BUILTIN, load_task
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
 from jetbot_rt.train.hyperparams import OptionError
 from jetbot_rt.train.out_dir import own_directory
-from jetbot_rt.train.vec_env import spawn_context
+from jetbot_rt.train.vec_env import workers_ignore_the_working_directory
 from jetbot_rt.train.video import EpisodeRecording, timed
 
 ABLATIONS = ("blank", "bgr", "pixel-range", "constant-forward")
@@ -192,7 +193,9 @@ def evaluate(
                 _WORKER.clear()
         else:
             jobs = [(str(path), task, config, one, ablate, video_dir) for one in seeds]
-            with spawn_context().Pool(workers) as pool:
+            with workers_ignore_the_working_directory():
+                pool = multiprocessing.get_context("spawn").Pool(workers)
+            with pool:
                 results = []
                 for result in pool.imap_unordered(_run_one, jobs):
                     results.append(result)

@@ -12,10 +12,11 @@ every one here resets in the SAME_STEP.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
-import multiprocessing.context
 import os
 import signal
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -28,14 +29,23 @@ from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.wrappers import KeepInfo, Shaping, make_train_env
 
 
-def spawn_context() -> multiprocessing.context.SpawnContext:
-    """The ``spawn`` context our worker processes start from. A spawned worker is ``python -c``,
-    which puts the working directory first on ``sys.path`` before it imports anything: a
-    ``threading.py`` or ``jetbot_rt/`` planted where someone trains would run as them.
-    ``PYTHONSAFEPATH`` (Python 3.11+) leaves it out; it is set in this process's environment,
-    so every later child inherits it too. Python 3.10 has no such switch (docs/SAFETY.md)."""
+@contextlib.contextmanager
+def workers_ignore_the_working_directory() -> Iterator[None]:
+    """Around the start of ``spawn`` workers. A spawned worker is ``python -c``, which puts the
+    working directory first on ``sys.path`` before it imports anything: a ``threading.py`` or
+    ``jetbot_rt/`` planted where someone trains would run as them. ``PYTHONSAFEPATH`` (Python
+    3.11+) leaves it out; it is set only while the workers start, so this process's other
+    children (a script run by name needs its own directory on ``sys.path``) are as before.
+    Python 3.10 has no such switch (docs/SAFETY.md)."""
+    previous = os.environ.get("PYTHONSAFEPATH")
     os.environ["PYTHONSAFEPATH"] = "1"
-    return multiprocessing.get_context("spawn")
+    try:
+        yield
+    finally:
+        if previous is None:
+            del os.environ["PYTHONSAFEPATH"]
+        else:
+            os.environ["PYTHONSAFEPATH"] = previous
 
 
 EPISODE_INFO = ("episode", "distance", "is_success")
@@ -82,9 +92,9 @@ def make_vector_env(spec: EnvSpec, num_envs: int, workers: int | None, *,
                             max_restarts=ray_max_restarts)
     if workers == 0:
         return SyncVectorEnv(factories, autoreset_mode=AutoresetMode.SAME_STEP)
-    spawn_context()
-    return AsyncVectorEnv(factories, context="spawn", autoreset_mode=AutoresetMode.SAME_STEP,
-                          shared_memory=True)
+    with workers_ignore_the_working_directory():
+        return AsyncVectorEnv(factories, context="spawn",
+                              autoreset_mode=AutoresetMode.SAME_STEP, shared_memory=True)
 
 
 def close_vector_env(envs: Any, interrupted: bool) -> None:
