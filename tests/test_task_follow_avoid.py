@@ -131,3 +131,9 @@ def test_the_avoid_expert_keeps_moving_without_touching_anything() -> None:
     expert = Avoid().expert()
     assert successes("avoid", expert.label) >= len(SEEDS) - 1
     assert successes("avoid", lambda info: np.ones(2)) <= 1
+
+
+def test_circling_blind_near_the_start_does_not_pass_avoid() -> None:
+    # What a policy trained on a path-length test answered a blank camera with: a tight left
+    # circle, clear of everything near a start 0.4 m from all obstacles.
+    assert successes("avoid", lambda info: np.array([0.27, 0.9])) == 0
