@@ -250,10 +250,10 @@ PLANTED = [
     Planted("NCHW frames fed with height and width swapped", "jetbot_rt/runtime/policy.py",
             "tensor.transpose(2, 0, 1)", "tensor.transpose(2, 1, 0)",
             ("tests/test_policy_orientation.py",)),
-    Planted("the main thread pings WATCHDOG=1", "jetbot_rt/commands/run.py",
+    Planted("the main thread pings WATCHDOG=1", "jetbot_rt/commands/run_phases.py",
             "            loop_thread.join(0.05)\n",
             "            loop_thread.join(0.05)\n"
-            "            self.notifier.tick(time.monotonic(), self._status)\n",
+            "            self.services.notifier.tick(time.monotonic(), rt.status)\n",
             ("tests/test_systemd_e2e.py::TestWatchdogPingsComeFromCompletedTicks",)),
     Planted("export parity check skipped", "jetbot_rt/train/export.py",
             "    error = parity_error(model, data)", "    error = 0.0",
@@ -261,12 +261,14 @@ PLANTED = [
     Planted("stop waits without limit for a hung write", "jetbot_rt/runtime/safety.py",
             "self._lock.acquire(timeout=STOP_LOCK_TIMEOUT_S)", "self._lock.acquire()",
             ("tests/test_safety_contracts.py",)),
-    Planted("safe_stop logged before the motors are zero", "jetbot_rt/commands/run.py",
-            "        self.drive = GuardedDrive(self.backend.drive, self.latch)\n"
+    Planted("safe_stop logged before the motors are zero", "jetbot_rt/commands/run_phases.py",
+            "        drive = self.drive = GuardedDrive(robot.drive, rt.latch)\n"
+            "        rt.shutdown.zero_last(drive)\n"
             "        # registered after the drive's own zeroing callback: the event is logged once"
-            " it is done\n        self.latch.on_trip(self._log_trip)\n",
-            "        self.latch.on_trip(self._log_trip)\n"
-            "        self.drive = GuardedDrive(self.backend.drive, self.latch)\n",
+            " it is done\n        rt.latch.on_trip(rt.log_trip)\n",
+            "        rt.latch.on_trip(rt.log_trip)\n"
+            "        drive = self.drive = GuardedDrive(robot.drive, rt.latch)\n"
+            "        rt.shutdown.zero_last(drive)\n",
             ("tests/test_stop_event_order.py",)),
     Planted("GStreamer child not killed with its parent", "jetbot_rt/hal/gst_camera.py",
             "    _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)\n", "",
