@@ -211,6 +211,20 @@ def read_json(path: PathLike, what: str, limit: int, *, follow_links: bool = Tru
         raise UsageError(f"{what} {shown(path)} is not valid JSON: {exc}") from None
 
 
+def no_link_of_others_above(path: PathLike, what: str) -> None:
+    """``UsageError`` if a directory above ``path`` is a symbolic link that neither this user
+    nor root owns: its owner chose where it leads, so where a directory we create below it
+    would be. A missing directory ends the walk (what is below is created by us)."""
+    for above in reversed(Path(os.path.abspath(path)).parents):
+        try:
+            info = os.lstat(above)
+        except OSError:
+            return
+        if stat.S_ISLNK(info.st_mode) and info.st_uid not in (os.geteuid(), 0):
+            raise UsageError(f"{what} {shown(path)}: {shown(above)} is a symbolic link of uid "
+                             f"{info.st_uid} (refused: it could lead anywhere)")
+
+
 def create_new(path: PathLike, mode: int = 0o666, *, dir_fd: int | None = None) -> int:
     """A descriptor (read and write) of a file created now at ``path`` (relative to the
     directory ``dir_fd`` if given): never an existing file, never through a link planted

@@ -28,7 +28,6 @@ import mmap
 import os
 import platform
 import select
-import stat
 import subprocess
 import sys
 import time
@@ -115,7 +114,7 @@ def open_directory(path: Path) -> int:
     relative to the descriptor, so a rename of the directory's name afterwards redirects
     nothing. ``UsageError`` says what is refused."""
     try:
-        _no_planted_link(path)
+        safe_file.no_link_of_others_above(path, "record directory")
         path.parent.mkdir(parents=True, exist_ok=True)
         with contextlib.suppress(FileExistsError):
             os.mkdir(path)  # never through a link at ``path``: that is EEXIST
@@ -139,18 +138,6 @@ def open_directory(path: Path) -> int:
         os.close(fd)
         raise
     return fd
-
-
-def _no_planted_link(path: Path) -> None:
-    """``UsageError`` if a parent of ``path`` is a symbolic link another user owns."""
-    for parent in reversed(Path(os.path.abspath(path)).parents):
-        try:
-            st = os.lstat(parent)
-        except OSError:
-            return  # created below by us
-        if stat.S_ISLNK(st.st_mode) and st.st_uid not in (os.geteuid(), 0):
-            raise UsageError(f"record directory {path}: {parent} is a symbolic link of uid "
-                             f"{st.st_uid} (refused: it could point anywhere)")
 
 
 class Recorder:

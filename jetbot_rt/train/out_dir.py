@@ -35,7 +35,7 @@ def own_directory(path: str | Path, what: str = "output directory",
     ``UsageError``, one line (``display``: the path it names)."""
     display = Path(path) if display is None else display
     if parent is None:
-        _no_link_of_others_above(Path(path), what)
+        safe_file.no_link_of_others_above(path, f"cannot write to {what}")
     try:
         if parent is None:
             Path(path).mkdir(parents=True, exist_ok=True)
@@ -60,19 +60,6 @@ def own_directory(path: str | Path, what: str = "output directory",
                          " or root: its owner could plant links where files are written; use "
                          "a directory of your own")
     return fd
-
-
-def _no_link_of_others_above(path: Path, what: str) -> None:
-    """``UsageError`` if a directory above ``path`` is a symbolic link that neither this user
-    nor root owns: its owner chose where it leads, so where our new directory would be."""
-    for above in reversed(Path(os.path.abspath(path)).parents):
-        try:
-            info = os.lstat(above)
-        except OSError:
-            return  # missing from here down: created by us
-        if stat.S_ISLNK(info.st_mode) and info.st_uid not in (os.geteuid(), 0):
-            raise UsageError(f"cannot write to {what} {shown(path)}: {shown(above)} is a "
-                             f"symbolic link of uid {info.st_uid} (it could lead anywhere)")
 
 
 def writable_directory(path: str | Path) -> int:
