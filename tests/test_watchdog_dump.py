@@ -161,6 +161,7 @@ def wedge():  # a native call that holds the GIL and that no signal interrupts
     import ctypes
     time.sleep(0.3)
     signal.pthread_sigmask(signal.SIG_BLOCK, signal.valid_signals())
+    print("wedging", flush=True)
     ctypes.pythonapi.sleep(3600)
 
 stopped = threading.Event()
@@ -204,7 +205,9 @@ def test_a_stopped_process_resumed_by_the_watchdog_signal_prints_every_stack(see
 def test_a_process_wedged_holding_the_gil_prints_every_stack_at_the_final_signal(
         seed: int) -> None:
     process, reader = churning_process("wedged", seed)
-    time.sleep(0.6)  # the wedge holds the GIL from 0.3 s on
+    assert process.stdout is not None and process.stdout.readline() == "wedging\n"
+    time.sleep(0.2)  # a few bytecodes from the print to the native call: the load decides when
+    # the wedge began, so the test waits for it to say so instead of a fixed time from start
     err = watchdog_ends(process, reader)
     assert process.returncode == -signal.SIGABRT, f"exit {process.returncode}\n{err[-2000:]}"
     assert "Fatal Python error: Aborted" in err
