@@ -76,6 +76,20 @@ def test_regression_fits_the_labels():
     assert np.abs(mu - labels).max() < 0.1
 
 
+def test_dataset_keeps_every_added_frame_in_order_as_it_grows():
+    from jetbot_rt.train.dagger import Dataset
+
+    rng = np.random.default_rng(3)
+    data = Dataset((4, 4, 3))
+    batches = [(rng.integers(0, 256, (n, 4, 4, 3), dtype=np.uint8),
+                rng.standard_normal((n, 2)).astype(np.float32)) for n in (5, 0, 1, 17, 3, 40)]
+    for frames, labels in batches:
+        data.add(frames, labels)
+    assert len(data) == 66
+    assert np.array_equal(data.frames, np.concatenate([f for f, _ in batches]))
+    assert np.array_equal(data.labels, np.concatenate([la for _, la in batches]))
+
+
 def test_photometric_jitter_scales_each_frame_within_its_range():
     from jetbot_rt.train.dagger import jitter
 

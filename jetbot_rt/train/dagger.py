@@ -23,6 +23,7 @@ from tqdm import tqdm
 from jetbot_rt.config.sections import Config
 from jetbot_rt.tasks import load_task
 from jetbot_rt.train.dagger_sampler import LabelSampler
+from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
 from jetbot_rt.train.expert import task_expert
 from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig
@@ -42,19 +43,43 @@ EXPERT_SETTINGS = ("stop_distance", "min_forward", "search_left", "search_right"
 
 
 class Dataset:
-    """The aggregated frames (uint8, as rendered) and the expert's labels, growing."""
+    """The aggregated frames (uint8, as rendered) and the expert's labels, growing.
+
+    Stored in buffers that double when full, so adding an iteration's frames copies only
+    those (concatenating re-copied the whole aggregate every iteration: seconds per
+    iteration late in a run). ``frames`` and ``labels`` are views of the filled part."""
 
     def __init__(self, shape: tuple[int, ...]) -> None:
-        self.frames = np.zeros((0, *shape), dtype=np.uint8)
-        self.labels = np.zeros((0, 2), dtype=np.float32)
+        self._frames = np.zeros((0, *shape), dtype=np.uint8)
+        self._labels = np.zeros((0, 2), dtype=np.float32)
+        self._size = 0
+
+    @property
+    def frames(self) -> np.ndarray:
+        return self._frames[:self._size]
+
+    @property
+    def labels(self) -> np.ndarray:
+        return self._labels[:self._size]
 
     def add(self, frames: np.ndarray, labels: np.ndarray) -> None:
-        if len(frames):
-            self.frames = np.concatenate([self.frames, frames])
-            self.labels = np.concatenate([self.labels, labels])
+        count = len(frames)
+        if not count:
+            return
+        needed = self._size + count
+        if needed > len(self._frames):
+            capacity = max(needed, 2 * len(self._frames))
+            grown = np.empty((capacity, *self._frames.shape[1:]), dtype=np.uint8)
+            grown[:self._size] = self.frames
+            grown_labels = np.empty((capacity, 2), dtype=np.float32)
+            grown_labels[:self._size] = self.labels
+            self._frames, self._labels = grown, grown_labels
+        self._frames[self._size:needed] = frames
+        self._labels[self._size:needed] = labels
+        self._size = needed
 
     def __len__(self) -> int:
-        return len(self.labels)
+        return self._size
 
 
 def jitter(x: torch.Tensor, amount: float, rng: np.random.Generator) -> torch.Tensor:
@@ -63,7 +88,8 @@ def jitter(x: torch.Tensor, amount: float, rng: np.random.Generator) -> torch.Te
     n = x.shape[0]
 
     def factors(size: tuple[int, ...], spread: float) -> torch.Tensor:
-        return torch.from_numpy(rng.uniform(1 - spread, 1 + spread, size).astype(np.float32))
+        return torch.from_numpy(rng.uniform(1 - spread, 1 + spread, size).astype(np.float32)
+                                ).to(x.device)
 
     brightness, contrast = factors((n, 1, 1, 1), amount), factors((n, 1, 1, 1), amount)
     channels = factors((n, 3, 1, 1), amount / 2)
@@ -77,18 +103,22 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
     loss."""
     model.train()
     losses: list[float] = []
+    device = next(model.parameters()).device
     stop = np.all(data.labels <= 0.0, axis=1)  # stop or back off
-    weights = torch.from_numpy(np.where(stop, args.stop_weight, 1.0).astype(np.float32))
+    weights = torch.from_numpy(np.where(stop, args.stop_weight, 1.0).astype(np.float32)
+                               ).to(device)
+    labels = torch.from_numpy(data.labels).to(device)
     passes = -(-args.train_samples // max(len(data), 1))
     order = np.concatenate([rng.permutation(len(data)) for _ in range(passes)])
     for begin in range(0, args.train_samples, args.batch_size):
         idx = np.sort(order[begin:min(begin + args.batch_size, args.train_samples)])
-        x = model.preprocess(torch.from_numpy(data.frames[idx]))
+        x = model.preprocess(torch.from_numpy(data.frames[idx]).to(device))
         if args.photometric_jitter > 0:
             x = jitter(x, args.photometric_jitter, rng)
         mu = model.heads(x)[0]
-        error = ((mu - torch.from_numpy(data.labels[idx])) ** 2).sum(-1)
-        loss = (error * weights[idx]).sum() / weights[idx].sum()
+        rows = torch.from_numpy(idx).to(device)
+        error = ((mu - labels[rows]) ** 2).sum(-1)
+        loss = (error * weights[rows]).sum() / weights[rows].sum()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -104,7 +134,7 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Any, data: Dataset,
     beta = 1.0 if iteration == 0 else args.beta * 0.5 ** (iteration - 1)
     n = envs.num_envs
     # numpy, not tensors (see rollout.WorkerRollouts): plain bytes through the pipes
-    weights = {name: w.detach().numpy().copy() for name, w in model.state_dict().items()}
+    weights = {name: w.detach().cpu().numpy().copy() for name, w in model.state_dict().items()}
     results = envs.unwrapped.call(
         "collect_labelled", weights, -(-args.steps_per_iteration // n),
         (args.seed, iteration), beta, args.expert_noise, expert)
@@ -154,6 +184,7 @@ class _Run:
         saved = self.run.prepare(options.resume)
         torch.manual_seed(options.seed)
         model, resumed = starting_model(options, saved, "dagger")
+        model = model.to(resolve_device(options.device))
         self.optimizer = torch.optim.Adam(model.parameters(), lr=options.learning_rate)
         self.progress = Progress()
         if resumed is not None:

@@ -98,7 +98,7 @@ def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
         _add(group, flags, spec.name, spec, docs.get(spec.name, ""), per_task)
     dagger_group = parser.add_argument_group(
         "DAgger options (--algo dagger; it shares --out, --seed, --resume, --init, --num-envs, "
-        "--workers, --learning-rate, --torch-threads, --progress with PPO, each with "
+        "--workers, --learning-rate, --device, --torch-threads, --progress with PPO, each with "
         "DAgger's own default)")
     dagger_docs, ppo_names = field_docs(DAggerArgs), {f.name for f in dataclasses.fields(PPOArgs)}
     for spec in dataclasses.fields(DAggerArgs):

@@ -434,6 +434,10 @@ class DAggerArgs:
     """m; the expert backs away closer than this (``Expert``; 0: never)."""
     snapshots: int = 0
     """Also export ``policy_<iteration>.onnx`` every this many iterations (0: never)."""
+    device: str = "cpu"
+    """Where the regression runs: "cpu" (default: the same weights from the same seed, byte
+    for byte), "auto" (CUDA when torch sees a GPU), "cuda" or "cuda:N". The rollouts run in
+    the env workers on the CPU either way."""
     torch_threads: int = 1
     """Learner threads during the regression (the env workers are idle then). One: on two
     shared cores two threads spin more than they compute (docs/TRAINING.md)."""
