@@ -121,26 +121,90 @@ def test_existing_unit_needs_force(tmp_path: Path, capsys):
     assert "unchanged" in capsys.readouterr().out
 
 
-def test_unknown_user_is_one_line_exit_2(tmp_path: Path):
+needs_systemd_sysusers = pytest.mark.skipif(
+    shutil.which("systemd-sysusers") is None, reason="systemd-sysusers is not installed"
+)
+SYSUSERS = PurePosixPath("etc/sysusers.d/jetbot-rt.conf")
+
+
+@needs_systemd_sysusers
+def test_staging_needs_none_of_the_robots_users_and_sysusers_creates_them(tmp_path: Path):
+    """The robot's user exists neither here nor in the staged tree: the unit is staged, and
+    systemd-sysusers (as the robot runs it, here on the staged tree) creates the user and the
+    groups of SupplementaryGroups=, Debian's missing i2c included."""
+    root = tmp_path / "image"
+    (root / "etc").mkdir(parents=True)
+    (root / "etc" / "passwd").write_text("root:x:0:0:root:/root:/bin/bash\n")
+    (root / "etc" / "group").write_text("root:x:0:\nvideo:x:44:\n")
     result = subprocess.run(
-        [sys.executable, "-m", "jetbot_rt.cli", "install-service", "--root", str(tmp_path),
-         "--user", "no-such-user-jetbot-rt"],
-        capture_output=True, text=True, timeout=60,
-    )
-    assert result.returncode == 2
-    assert result.stderr.count("\n") == 1, result.stderr
-    assert "no-such-user-jetbot-rt" in result.stderr and "useradd --system" in result.stderr
+        [sys.executable, "-m", "jetbot_rt.cli", "install-service", "--root", str(root),
+         "--user", "no-such-user-jetbot-rt"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert unit_values((root / UNIT).read_text(), "User") == ["no-such-user-jetbot-rt"]
+    assert f"wrote {root / SYSUSERS}" in result.stdout
+    next_steps = result.stdout.split("next:\n", 1)[1].splitlines()
+    assert next_steps[0].split()[:3] == ["sudo", "systemd-sysusers", "/" + str(SYSUSERS)]
+    applied = subprocess.run(["systemd-sysusers", f"--root={root}"], capture_output=True,
+                             text=True, timeout=60)
+    assert applied.returncode == 0, applied.stderr
+    passwd = (root / "etc" / "passwd").read_text()
+    assert "\nno-such-user-jetbot-rt:" in passwd
+    groups = {line.split(":")[0]: line.split(":")[3].split(",")
+              for line in (root / "etc" / "group").read_text().splitlines()}
+    assert "no-such-user-jetbot-rt" in groups["i2c"] and "no-such-user-jetbot-rt" in groups["video"]
+    assert groups["video"] and (root / "etc" / "group").read_text().count("video:x:44:") == 1
+
+
+def test_a_program_the_staged_tree_lacks_or_tmp_holds_is_named_with_the_knob(tmp_path: Path):
+    root = tmp_path / "image"
+    root.mkdir()
+    result = subprocess.run(
+        [sys.executable, "-m", "jetbot_rt.cli", "install-service", "--root", str(root),
+         "--user", "jetbot"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    [warning] = result.stderr.splitlines()
+    assert warning.startswith("warning: the unit's ExecStart runs") and "--executable" in warning
+    in_tmp = PurePosixPath("/tmp/venv/bin/jetbot-rt")
+    assert main(["install-service", "--root", str(root), "--user", "jetbot", "--force",
+                 "--executable", str(in_tmp)]) == 0
+    assert unit_values((root / UNIT).read_text(), "ExecStart")[0].startswith(f"{in_tmp} run ")
+    assert service.target_warnings(root, False, in_tmp, "jetbot")[0].count("PrivateTmp") == 1
+
+
+@needs_systemd_analyze
+def test_a_unit_staged_for_a_program_in_the_tree_passes_verify_on_that_tree(tmp_path: Path,
+                                                                                capsys):
+    """systemd-analyze --root reads ExecStart's program in the staged tree: what the robot
+    will have, not what this workstation has."""
+    root = tmp_path / "image"
+    program = root / "opt" / "jetbot-rt" / "bin" / "jetbot-rt"
+    program.parent.mkdir(parents=True)
+    program.write_text("#!/opt/jetbot-rt/bin/python\n")
+    program.chmod(0o755)
+    shutil.copytree("/usr/lib/systemd/system", root / "usr" / "lib" / "systemd" / "system",
+                    symlinks=True)
+    assert main(["install-service", "--root", str(root), "--user", "jetbot", "--executable",
+                 "/opt/jetbot-rt/bin/jetbot-rt"]) == 0
+    assert capsys.readouterr().err == "", "nothing to warn about"
+    unit = (root / UNIT).read_text()
+    assert unit_values(unit, "ProtectHome") == ["yes"]
+    verify = subprocess.run(["systemd-analyze", f"--root={root}", "verify", "--man=no",
+                             str(root / UNIT)], capture_output=True, text=True, timeout=60)
+    assert verify.returncode == 0 and verify.stderr == "", verify.stderr
+    program.unlink()
+    verify = subprocess.run(["systemd-analyze", f"--root={root}", "verify", "--man=no",
+                             str(root / UNIT)], capture_output=True, text=True, timeout=60)
+    assert verify.returncode != 0 and "/opt/jetbot-rt/bin/jetbot-rt" in verify.stderr
+
+
+@pytest.mark.parametrize("value", ["opt/jetbot-rt/bin/jetbot-rt", "/opt/../tmp/jetbot-rt",
+                                   "/opt/jetbot-rt/bin/"])
+def test_an_executable_that_is_no_absolute_file_path_is_refused(tmp_path: Path, capsys,
+                                                                 value: str):
+    assert main(["install-service", "--root", str(tmp_path), "--user", "jetbot",
+                 "--executable", value]) == 2
+    assert "--executable" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
-
-
-def test_staged_passwd_decides_which_users_exist(tmp_path: Path):
-    (tmp_path / "etc").mkdir()
-    (tmp_path / "etc" / "passwd").write_text(
-        "root:x:0:0:root:/root:/bin/bash\njetbot:x:998:998::/nonexistent:/usr/sbin/nologin\n"
-    )
-    assert install(tmp_path, user="jetbot") == 0
-    assert unit_values((tmp_path / UNIT).read_text(), "User") == ["jetbot"]
-    assert install(tmp_path, "--force", user="nobody") == 2, "on the host, not in the image"
 
 
 def test_unwritable_target_is_one_line_exit_2(tmp_path: Path, capsys):
@@ -252,7 +316,7 @@ def test_a_newline_in_the_executables_own_path_writes_no_unit(tmp_path: Path) ->
 
 
 @pytest.mark.parametrize("link", ["etc", "etc/systemd/system", "etc/jetbot-rt",
-                                  "etc/jetbot-rt/config.toml", "etc/passwd"])
+                                  "etc/jetbot-rt/config.toml", "etc/sysusers.d"])
 def test_a_symbolic_link_in_the_staged_tree_cannot_lead_out_of_root(tmp_path: Path, capsys,
                                                                    link: str) -> None:
     """An image's absolute link means the image's /, which here is the host's: refused, one

@@ -1,4 +1,5 @@
-"""``jetbot-rt install-service``: write the systemd unit and, if absent, a default config.
+"""``jetbot-rt install-service``: write the systemd unit, a sysusers.d file for its user and,
+if absent, a default config.
 
 Everything is checked before anything is written, so an error (exit 2, one line) leaves the
 target tree as it was. ``--root`` installs into a staging tree (an SD-card image, a test):
@@ -6,6 +7,13 @@ every path it reads or writes stays inside that tree (no ``..``, no symbolic lin
 out). Every value that goes into the unit is refused when systemd could read it as something
 else (a control character, text that is not UTF-8, a user name systemd would not take) and
 escaped as systemd.syntax(7) says otherwise (quotes, ``%%``, ``$$``).
+
+The service's user is declared, not required: ``etc/sysusers.d/jetbot-rt.conf`` names the user
+and its groups, and ``systemd-sysusers`` creates what is missing on the robot (or in an image,
+with ``--root``). Staging on a workstation therefore needs none of the robot's users here, and
+the groups the unit's ``SupplementaryGroups=`` names exist once it ran (a missing one fails the
+start with 216/GROUP). Checking the user when the service starts would not help: systemd
+already refuses a missing ``User=`` (217/USER), on the robot, with nobody at a shell.
 """
 
 from __future__ import annotations
@@ -30,8 +38,18 @@ UNIT_NAME = "jetbot-rt.service"
 UNIT_DIR = PurePosixPath("/etc/systemd/system")
 DEFAULT_CONFIG = "/etc/jetbot-rt/config.toml"
 DEFAULT_USER = "jetbot"
-CREATE_USER_HINT = "sudo useradd --system --groups i2c,video jetbot"
+SYSUSERS_DIR = PurePosixPath("/etc/sysusers.d")
+SYSUSERS_NAME = "jetbot-rt.conf"
+APPLY_SYSUSERS = f"sudo systemd-sysusers {SYSUSERS_DIR / SYSUSERS_NAME}"
 SUPPLEMENTARY_GROUPS = ("i2c", "video")
+"""The unit's SupplementaryGroups=: i2c owns /dev/i2c-N (JetPack's udev rules; on Debian and
+Ubuntu the i2c-tools package adds the group and the rule), video the camera. The JetBot image
+also has gpio, which nothing here uses (the motors are on I2C)."""
+I2C_GROUP_HINT = ("on Debian/Ubuntu `sudo apt-get install i2c-tools` adds group i2c and the udev "
+                  "rule that gives it /dev/i2c-N (JetPack has both)")
+# Where the service cannot find its program: PrivateTmp=yes gives it an empty /tmp, and both
+# are emptied at boot.
+TEMPORARY_DIRS = (PurePosixPath("/tmp"), PurePosixPath("/var/tmp"))
 # ProtectHome=yes hides these; an installation living there needs ProtectHome=read-only.
 HOME_DIRS = (PurePosixPath("/home"), PurePosixPath("/root"), PurePosixPath("/run/user"))
 PLACEHOLDERS = ("@EXECUTABLE@", "@USER@", "@CONFIG@", "@PROTECT_HOME@")
@@ -56,8 +74,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--user", default=DEFAULT_USER, metavar="NAME",
-        help=f"the unprivileged user the service runs as (default {DEFAULT_USER}; create it "
-        f"with: {CREATE_USER_HINT})",
+        help=f"the unprivileged user the service runs as (default {DEFAULT_USER}); declared "
+        f"in {SYSUSERS_DIR / SYSUSERS_NAME} with its groups ({', '.join(SUPPLEMENTARY_GROUPS)}) "
+        f"for systemd-sysusers to create on the robot: {APPLY_SYSUSERS}",
+    )
+    parser.add_argument(
+        "--executable", metavar="PATH",
+        help="the jetbot-rt program as seen on the target, for ExecStart (default: the one "
+        "running this command); with --root, e.g. /opt/jetbot-rt/bin/jetbot-rt",
     )
     parser.add_argument(
         "--config", default=DEFAULT_CONFIG, metavar="PATH",
@@ -75,10 +99,12 @@ def run(args: argparse.Namespace) -> int:
     if not root.is_dir():
         raise UsageError(f"--root {args.root}: not a directory")
     config = target_path(args.config)
-    check_user(args.user, root)
-    executable = find_executable()
+    check_user_name(args.user)
+    on_target = root.resolve() == Path("/")
+    executable, script = target_executable(root, args.executable, on_target)
 
     unit_path = staged(root, UNIT_DIR / UNIT_NAME)
+    sysusers_path = staged(root, SYSUSERS_DIR / SYSUSERS_NAME)
     config_path = staged(root, config)
     monitor = None
     if config_path.exists() or config_path.is_symlink():
@@ -86,32 +112,88 @@ def run(args: argparse.Namespace) -> int:
 
         # an existing config is kept: it must be one the service reads
         monitor = load_config(config_path).monitor.listen
-    unit_text = render_unit(executable, args.user, config, network=monitor is not None)
-    unit_action = "wrote"
-    if unit_path.exists() or unit_path.is_symlink():
-        if read_text(unit_path, "the unit") == unit_text:
-            unit_action = "unchanged"
-        elif not args.force:
-            raise UsageError(f"{unit_path} exists and differs; pass --force to replace it")
-        else:
-            unit_action = "replaced"
-    if unit_action != "unchanged":
-        write_file(unit_path, unit_text)
+    unit_text = render_unit(executable, args.user, config, network=monitor is not None,
+                            script=script)
+    outputs = [(unit_path, unit_text, "the unit")]
+    if args.user != "root":  # root exists everywhere, and needs no group
+        outputs.append((sysusers_path, sysusers_text(args.user), "the sysusers.d file"))
+    actions = [replace_action(path, text, what, args.force) for path, text, what in outputs]
+    for (path, text, _), action in zip(outputs, actions):
+        if action != "unchanged":
+            write_file(path, text)
     config_action = "kept existing"
     if not config_path.exists():
         write_file(config_path, default_config_text())
         config_action = "wrote default"
 
-    print(f"{unit_action} {unit_path}")
+    for (path, _, _), action in zip(outputs, actions):
+        print(f"{action} {path}")
     print(f"{config_action} {config_path}")
+    for line in target_warnings(root, on_target, executable, args.user):
+        print(f"warning: {line}", file=sys.stderr)
     if monitor is not None:
         print(f"note: [monitor] listen = {monitor!r} in the config, so the unit allows IP "
               f"sockets ({NETWORK_FAMILIES}); without it, only local ones")
-    if protect_home(executable, config) != "yes":
+    if protect_home(executable, config, script) != "yes":
         print("note: this installation lives under /home or /root, so the unit uses "
               "ProtectHome=read-only; a venv in /opt/jetbot-rt keeps home directories hidden")
     print_next_steps(root, args.user, config, executable)
     return 0
+
+
+def replace_action(path: Path, text: str, what: str, force: bool) -> str:
+    """``wrote``, ``unchanged`` or ``replaced``; ``UsageError`` for a file that differs
+    without ``--force``."""
+    if not (path.exists() or path.is_symlink()):
+        return "wrote"
+    if read_text(path, what) == text:
+        return "unchanged"
+    if not force:
+        raise UsageError(f"{path} exists and differs; pass --force to replace it")
+    return "replaced"
+
+
+def sysusers_text(user: str) -> str:
+    """sysusers.d(5) lines for the service's user and its groups; ``u`` and ``m`` only, which
+    every systemd since 215 reads (JetPack 4.6 has 237). An existing user or group is left as
+    it is; ``m`` creates a missing group."""
+    groups = "".join(f"m {user} {group}\n" for group in SUPPLEMENTARY_GROUPS)
+    return (
+        "# Written by `jetbot-rt install-service`: the user the jetbot-rt service runs as and the\n"
+        "# groups of its SupplementaryGroups= (i2c: /dev/i2c-N, video: the camera). Apply on the\n"
+        f"# robot with: {APPLY_SYSUSERS}\n"
+        f'u {user} - "jetbot_rt service"\n{groups}'
+    )
+
+
+def target_warnings(root: Path, on_target: bool, executable: PurePosixPath, user: str) -> list[str]:
+    """What the robot will not have: the program (outside the staged tree, or in a temporary
+    directory the service cannot see), the user, the I2C group."""
+    lines = []
+    if any(tmp == executable or tmp in executable.parents for tmp in TEMPORARY_DIRS):
+        lines.append(f"the unit's ExecStart runs {executable}, in a temporary directory: the "
+                     "service's PrivateTmp=yes hides it and a reboot empties it; install "
+                     "jetbot_rt in /opt/jetbot-rt (README) or pass --executable PATH")
+    elif not on_target and not os.path.lexists(root / executable.relative_to("/")):
+        lines.append(f"the unit's ExecStart runs {executable}, which is not in the staged tree "
+                     f"{root}: install jetbot_rt there (e.g. a venv in /opt/jetbot-rt) or pass "
+                     "--executable with the path it has on the robot")
+    if on_target and user != "root":
+        if not user_exists(user):
+            lines.append(f"user {user!r} does not exist yet: {APPLY_SYSUSERS} creates it")
+        try:
+            grp.getgrnam("i2c")
+        except KeyError:
+            lines.append(f"group 'i2c' does not exist here; {I2C_GROUP_HINT}")
+    return lines
+
+
+def user_exists(name: str) -> bool:
+    try:
+        pwd.getpwnam(name)
+    except KeyError:
+        return False
+    return True
 
 
 def target_path(value: str) -> PurePosixPath:
@@ -128,34 +210,31 @@ def target_path(value: str) -> PurePosixPath:
     return config
 
 
-def check_user(name: str, root: Path) -> None:
-    """The user must exist on the target: the host's user database, or the staged
-    ``etc/passwd`` when installing into another tree that has one."""
+def check_user_name(name: str) -> None:
+    """A name the unit and sysusers.d can take; whether the user exists is the robot's
+    business (the sysusers.d file creates it there)."""
     if USER_NAME.fullmatch(name) is None:
         raise UsageError(f"--user {name!r}: not a user name a systemd unit can take "
                          "(letters, digits, '_', '.', '-'; at most 32)")
-    passwd = staged(root, PurePosixPath("/etc/passwd"))
-    if root.resolve() != Path("/") and passwd.is_file():
-        names = {line.split(":", 1)[0] for line in read_text(passwd, "passwd").splitlines()}
-        exists = name in names
-    else:
-        try:
-            pwd.getpwnam(name)
-            exists = True
-        except KeyError:
-            exists = False
-    if not exists:
-        raise UsageError(
-            f"user {name!r} does not exist; create it with: {CREATE_USER_HINT} "
-            f"(or pass --user NAME)"
-        )
-    if root.resolve() == Path("/"):
-        for group in SUPPLEMENTARY_GROUPS:
-            try:
-                grp.getgrnam(group)
-            except KeyError:
-                print(f"warning: group {group!r} does not exist here; the unit's "
-                      f"SupplementaryGroups= will fail to start until it does", file=sys.stderr)
+
+
+def target_executable(root: Path, value: str | None,
+                      on_target: bool) -> tuple[PurePosixPath, Path | None]:
+    """ExecStart's program as the target sees it, and the file here to read its ``#!`` line
+    from: None for this installation's own program (``protect_home``'s default), the staged
+    file, or a path that does not exist when the staged tree does not have it yet."""
+    if value is None:
+        return PurePosixPath(find_executable()), None
+    program = PurePosixPath(unit_value("--executable", value))
+    if not program.is_absolute() or ".." in program.parts or value.endswith("/"):
+        raise UsageError(f"--executable {value}: must be an absolute path of a file on the "
+                         "target, without '..'")
+    here = staged(root, program)
+    if here.is_file():
+        return program, here
+    if on_target:
+        raise UsageError(f"--executable {value}: no such file")
+    return program, here
 
 
 def find_executable() -> Path:
@@ -175,10 +254,17 @@ def find_executable() -> Path:
     raise UsageError("cannot find this installation's jetbot-rt executable; reinstall with pip")
 
 
-def protect_home(executable: Path, config: PurePosixPath) -> str:
-    """``yes`` unless the program or its config lives in a home directory."""
-    paths = [PurePosixPath(executable), config, PurePosixPath(Path(__file__).resolve())]
-    interpreter = shebang_interpreter(executable)
+def protect_home(executable: Path | PurePosixPath, config: PurePosixPath,
+                 script: Path | None = None) -> str:
+    """``yes`` unless the program (as the target sees it), its interpreter (read from
+    ``script``, the program's file here: by default the program itself, which is then this
+    installation, so the package running now counts too) or its config lives in a home
+    directory."""
+    paths = [PurePosixPath(executable), config]
+    if script is None:
+        script = Path(executable)
+        paths.append(PurePosixPath(Path(__file__).resolve()))
+    interpreter = shebang_interpreter(script)
     if interpreter is not None:
         paths.append(interpreter)
     in_home = any(home == path or home in path.parents for path in paths for home in HOME_DIRS)
@@ -197,8 +283,8 @@ def shebang_interpreter(executable: Path) -> PurePosixPath | None:
     return PurePosixPath(words[0]) if words else None
 
 
-def render_unit(executable: Path, user: str, config: PurePosixPath, *,
-                network: bool = False) -> str:
+def render_unit(executable: Path | PurePosixPath, user: str, config: PurePosixPath, *,
+                network: bool = False, script: Path | None = None) -> str:
     """The unit: the template with its placeholders filled in its settings, never in its
     comments (which name the placeholders to say what the template is). ``network``: the
     config serves the monitor, so ``RestrictAddressFamilies`` also allows IP sockets."""
@@ -209,7 +295,7 @@ def render_unit(executable: Path, user: str, config: PurePosixPath, *,
                                                 os.fsdecode(executable)), program=True),
         "@USER@": user,
         "@CONFIG@": systemd_word(unit_value("--config", str(config))),
-        "@PROTECT_HOME@": protect_home(executable, config),
+        "@PROTECT_HOME@": protect_home(executable, config, script),
     }
     lines = []
     for line in unit_template().splitlines(keepends=True):
@@ -218,6 +304,8 @@ def render_unit(executable: Path, user: str, config: PurePosixPath, *,
                 line = line.replace(placeholder, value)
         lines.append(line)
     text = "".join(lines)
+    assert f"SupplementaryGroups={' '.join(SUPPLEMENTARY_GROUPS)}\n" in text, \
+        "the unit template's groups changed: SUPPLEMENTARY_GROUPS declares them to sysusers.d"
     if network:
         assert LOCAL_FAMILIES in text, "the unit template's RestrictAddressFamilies changed"
         text = text.replace(LOCAL_FAMILIES, f"{LOCAL_FAMILIES} {NETWORK_FAMILIES}")
@@ -315,12 +403,14 @@ def write_file(path: Path, text: str) -> None:
         raise UsageError(f"cannot write {path}: {exc.strerror or exc}{hint}") from None
 
 
-def print_next_steps(root: Path, user: str, config: PurePosixPath, executable: Path) -> None:
+def print_next_steps(root: Path, user: str, config: PurePosixPath,
+                     executable: PurePosixPath) -> None:
     if root.resolve() != Path("/"):
         print(f"(staged under {root}; run these on the target once the tree is in place)")
     # Quoted for a shell: the commands are meant to be pasted.
     shown_config, shown_executable = shlex.quote(str(config)), shlex.quote(str(executable))
-    steps = [
+    steps = [] if user == "root" else [(APPLY_SYSUSERS, f"creates user {user} and its groups")]
+    steps += [
         (f"jetbot-rt check --config {shown_config}", "motor board, camera, policy"),
         ("sudo systemctl daemon-reload", ""),
         ("sudo systemctl enable --now jetbot-rt", "start now and at every boot"),
@@ -336,3 +426,5 @@ def print_next_steps(root: Path, user: str, config: PurePosixPath, executable: P
         print(f"  {command.ljust(width)}  # {comment}" if comment else f"  {command}")
     print(f"the service runs as {user!r}; it reads {config} and writes only "
           "/run/jetbot-rt, /var/log/jetbot-rt and /var/lib/jetbot-rt")
+    if user != "root":
+        print(f"the I2C bus: {I2C_GROUP_HINT}")
