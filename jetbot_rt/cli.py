@@ -21,6 +21,8 @@ from jetbot_rt.workstation import sim_problem
 # subcommand -> (module in jetbot_rt.commands with add_arguments/run, help)
 COMMANDS = {
     "run": ("run", "drive the robot (or the simulation) from an ONNX policy"),
+    "drive": ("drive", "drive by hand (keyboard, gamepad, scripted), or take over from a "
+              "policy while holding a key; record for jetbot-train finetune"),
     "stop": ("stop", "stop a running jetbot-rt and turn the motor outputs off"),
     "check": ("check", "self-test: motor board, camera, policy, providers"),
     "install-service": ("install_service", "install the systemd unit and a default config"),
@@ -49,7 +51,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, str]]:
 NEVER_INTERRUPTED = {"stop"}
 """Commands a signal never cuts short: ``stop`` (systemd's ExecStopPost, an operator's last
 resort) finishes writing the stop, then exits with its own code; SIGKILL still ends it."""
-NEVER_BLOCKED = {"run", "stop", "check", "calibrate"}
+NEVER_BLOCKED = {"run", "drive", "stop", "check", "calibrate"}
 """Commands that touch the motor board: their stdout and stderr never block (a pipe nobody
 reads, a terminal stopped by Ctrl-S, a stalled journald), ``jetbot_rt.service.console``. The others
 (report, replay...) print as Python does: a reader that is slow is waited for."""

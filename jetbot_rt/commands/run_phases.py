@@ -24,7 +24,7 @@ from jetbot_rt.hal.registry import BackendOptions, make_backend
 from jetbot_rt.recording.recorder import Recorder
 from jetbot_rt.recording.recorder import open_for_run as open_recorder
 from jetbot_rt.runtime.actions import ActionPipeline
-from jetbot_rt.runtime.loop import ControlLoop, Schedule, StopChain, TickResult
+from jetbot_rt.runtime.loop import ControlLoop, Policy, Schedule, StopChain, TickResult
 from jetbot_rt.runtime.policy import (
     META_PREFIX,
     OnnxPolicy,
@@ -106,7 +106,7 @@ class Prepare(Phase):
         policy = self.load.policy
         self.actions = ActionPipeline.from_config(rt.config.actions, policy.max_speed)
         self.recorder = open_recorder(rt.config, rt.args.backend, policy, self.actions.max_speed,
-                                      rt.telemetry.t0)
+                                      rt.telemetry.t0, getattr(rt, "record_meta", None))
         if self.recorder is not None:
             rt.shutdown.close_with_summary(self.recorder)
 
@@ -319,7 +319,7 @@ class Drive(Phase):
         watchdog_timeout = loop_cfg.watchdog_timeout_for(robot.simulated)
         watchdog = self.watchdog = Watchdog(rt.latch, watchdog_timeout)
         loop = ControlLoop(
-            robot=robot, policy=self.load.policy, actions=self.prepare.actions,
+            robot=robot, policy=self.loop_policy(), actions=self.prepare.actions,
             safety=StopChain(rt.latch, drive, watchdog),
             schedule=Schedule(loop_cfg.period, rt.config.max_frame_age_s),
             observers=self._observers(), stats=rt.stats,
@@ -339,6 +339,10 @@ class Drive(Phase):
         loop_thread.join(max(1.0, 3 * loop_cfg.period))
         if loop_thread.is_alive():
             rt.lifecycle.stuck.append(loop_thread)  # stuck in native code, cannot be joined
+
+    def loop_policy(self) -> Policy:
+        """What the loop asks for each tick's action (``jetbot-rt drive``: its arbiter)."""
+        return self.load.policy
 
     def exit(self) -> None:
         """The watchdog first: the stop that follows must not race its thread."""
