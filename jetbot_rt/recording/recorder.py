@@ -309,8 +309,9 @@ class Recorder:
 
 
 def open_for_run(config: Any, backend: str, policy: Any, max_speed: float,
-                 t0: float) -> Recorder | None:
-    """The recorder ``jetbot-rt run`` asks for with ``--record`` or ``[record] path``."""
+                 t0: float, extra: dict[str, Any] | None = None) -> Recorder | None:
+    """The recorder ``jetbot-rt run`` asks for with ``--record`` or ``[record] path``;
+    ``extra`` adds to (or replaces) the meta's keys (``jetbot-rt drive``: its source, input)."""
     if not config.record.path:
         return None
     import dataclasses
@@ -324,6 +325,7 @@ def open_for_run(config: Any, backend: str, policy: Any, max_speed: float,
         "max_speed": max_speed,
         "config": dataclasses.asdict(config),
         "argv": sys.argv,
+        **(extra or {}),
     }
     return Recorder(expand_path(config.record.path), meta, (spec.width, spec.height),
                     config.loop.rate_hz, queue_frames=config.record.queue_frames,
