@@ -5,6 +5,10 @@ The drive is ``jetbot-rt run``'s: the same phases (control socket, the board's s
 the latch, the watchdog, the signals, the recorder, exit codes), with the drive programme
 (``calibration.programme``) in the policy's place and the marker watched on every frame. Then
 the fit (``calibration.fit``) reads the recording back; ``--fit RECORDING`` does only that.
+
+``--camera`` measures the lens instead (``calibration.intrinsics``): a printed checkerboard's
+views from the camera (the motors are never opened) or from ``--frames DIR``, fitted by
+OpenCV's fisheye model, written as the ``[sim]`` lens keys.
 """
 
 from __future__ import annotations
@@ -18,12 +22,16 @@ from pathlib import Path
 import numpy as np
 
 from jetbot_rt.calibration.fit import Data, fit, to_toml
+from jetbot_rt.calibration.intrinsics import board_png, calibrate
+from jetbot_rt.calibration.intrinsics import to_toml as intrinsics_toml
 from jetbot_rt.calibration.measure import Geometry, MarkerMeter, marker_png
 from jetbot_rt.calibration.programme import Limits, Programme, duration
+from jetbot_rt.calibration.views import board_views, collect, enough, load_frames, save_frames
 from jetbot_rt.commands.lifecycle import Phase
 from jetbot_rt.commands.run import Runtime
 from jetbot_rt.commands.run_phases import Connect, Drive, Load
 from jetbot_rt.config import safe_file
+from jetbot_rt.config.sections import Config, load_config
 from jetbot_rt.errors import EXIT_OK, UsageError
 from jetbot_rt.hal.i2c import add_emulator_argument
 from jetbot_rt.hal.registry import BACKEND_MODULES
@@ -33,6 +41,9 @@ from jetbot_rt.recording.recorder import expand_path
 FRAME_SIZE = (320, 180)
 SIM_MARKER_DISTANCE = 0.5
 DONE = "calibration programme done"
+CAMERA_FRAME_SIZE = {"real": (1280, 720), "sim": (640, 360)}
+"""The lens is measured at the camera's full capture (real) and at a size the sim renders
+in a blink; the keys are normalised by the frame's size, so they hold at any size."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,6 +73,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="distance between the wheels' centres, m")
     parser.add_argument("--camera-offset", type=float, default=Geometry.camera_offset,
                         help="camera ahead of the wheel axle, m")
+    parser.add_argument("--camera", action="store_true",
+                        help="measure the lens instead: a printed checkerboard "
+                             f"({board_png().name}) in front of the camera, or --frames")
+    parser.add_argument("--frames", metavar="DIR",
+                        help="--camera: fit the board's views in these images (png, jpg)")
+    parser.add_argument("--views", type=int, default=15,
+                        help="--camera: views of the board to take (default 15)")
+    parser.add_argument("--time-limit", type=float, default=180.0,
+                        help="--camera: give up taking views after this many s (default 180)")
     add_emulator_argument(parser)
 
 
@@ -207,7 +227,11 @@ def fit_recording(path: str, out: str | None) -> int:
         result = fit(data, geometry, max_duty)
     except ValueError as exc:
         raise UsageError(f"{path}: {exc}") from None
-    text = to_toml(result, geometry, path)
+    return write_toml(to_toml(result, geometry, path), out)
+
+
+def write_toml(text: str, out: str | None) -> int:
+    """``text`` into ``out`` (replaced whole, or not at all), else on stdout."""
     if out:
         target = Path(out)
         try:
@@ -221,7 +245,75 @@ def fit_recording(path: str, out: str | None) -> int:
     return EXIT_OK
 
 
+def camera_views(args: argparse.Namespace) -> tuple[list[np.ndarray], tuple[int, int], str]:
+    """The board's corners in each view, the frames' size and where they came from: the
+    images of ``--frames``, or the camera's (the views then saved under ``--record``)."""
+    if args.frames:
+        if args.backend:
+            raise UsageError("--camera --frames reads images; it takes no --backend")
+        images = load_frames(args.frames)
+        height, width = images[0].shape[:2]
+        views = board_views(images)
+        enough(views, len(images), args.frames)
+        return views, (width, height), args.frames
+    if not args.backend:
+        raise UsageError("--camera: give --backend (sim or real) to take views, or --frames DIR")
+    if not 1 <= args.views <= 200 or not (math.isfinite(args.time_limit)
+                                          and 1 <= args.time_limit <= 3600):
+        raise UsageError("--views must be in [1, 200] and --time-limit in [1, 3600] s")
+    config = load_config(args.config)
+    size = CAMERA_FRAME_SIZE.get(args.backend, CAMERA_FRAME_SIZE["real"])
+    if args.backend == "sim":
+        from jetbot_rt.sim.board import sim_views
+
+        images = sim_views(config.sim, size, args.views)
+    else:
+        images = live_views(args, config, size)
+    views = board_views(images)
+    enough(views, len(images), f"--backend {args.backend}")
+    record = Path(str(expand_path(args.record)))
+    save_frames(record, images)
+    print(f"saved the views in {record} (--camera --frames {record} fits them again)")
+    return views, size, str(record)
+
+
+def live_views(args: argparse.Namespace, config: Config, size: tuple[int, int]) -> list:
+    """The camera's frames with the board in view; the motors are never opened."""
+    from jetbot_rt.hal.registry import BackendOptions, make_backend
+
+    robot = make_backend(args.backend, config, BackendOptions(frame_size=size))
+    last: list[int] = [-1]
+
+    def read() -> np.ndarray | None:
+        frame = robot.camera.read()
+        if frame is None or frame.index == last[0]:
+            return None
+        last[0] = frame.index
+        return frame.image
+
+    print(f"hold the board ({board_png()}, printed flat) 0.2-0.6 m in front of the camera, "
+          "the whole board in view; move and tilt it between views", flush=True)
+    robot.camera.start()
+    try:
+        return collect(read, args.views, args.time_limit, size, print)
+    finally:
+        robot.camera.stop()
+
+
+def camera_run(args: argparse.Namespace) -> int:
+    if args.fit:
+        raise UsageError("--camera measures the lens; --fit re-fits a drive's recording")
+    views, size, source = camera_views(args)
+    try:
+        result = calibrate(views, size)
+    except ValueError as exc:
+        raise UsageError(f"{source}: {exc}") from None
+    return write_toml(intrinsics_toml(result, source), args.out)
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.camera:
+        return camera_run(args)
     if args.fit:
         if args.backend:
             raise UsageError("--fit reads a recording; it takes no --backend")

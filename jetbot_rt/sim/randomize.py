@@ -17,7 +17,7 @@ import numpy as np
 from jetbot_rt.config.schema import set_value
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.appearance import wall_colors
-from jetbot_rt.sim.config import RandomizeConfig, SimConfig, randomized_knobs
+from jetbot_rt.sim.config import RandomizeConfig, Randomized, SimConfig, randomized_knobs
 
 DRAWN = (*(name for name, _ in randomized_knobs()), "seed", "floor_texture")
 """The [sim] keys a draw sets (``seed`` seeds the episode's image noise)."""
@@ -60,17 +60,22 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
             _r(math.sin(elevation)),
         ],
     }
-    drawn: dict[str, Any] = {}
-    for name, spec in randomized_knobs():  # then every other knob, in SimConfig's order
+    def draw(name: str, spec: Randomized) -> Any:
         bounds = getattr(r, spec.key or name)
         if spec.draw == "custom":
-            drawn[name] = custom[name]
-        elif spec.draw == "factor":
-            drawn[name] = _r(getattr(base, name) * _uniform(rng, bounds))
-        elif spec.draw == "color":
-            drawn[name] = _color(rng, getattr(base, name), bounds, r.tint)
-        else:
-            drawn[name] = _r(_uniform(rng, bounds))
+            return custom[name]
+        if spec.draw == "factor":
+            return _r(getattr(base, name) * _uniform(rng, bounds))
+        if spec.draw == "offset":
+            return _r(getattr(base, name) + _uniform(rng, bounds))
+        if spec.draw == "color":
+            return _color(rng, getattr(base, name), bounds, r.tint)
+        return _r(_uniform(rng, bounds))
+
+    drawn: dict[str, Any] = {}
+    for name, spec in randomized_knobs():  # then every other knob, in SimConfig's order
+        if not spec.late:
+            drawn[name] = draw(name, spec)
     drawn["seed"] = int(rng.integers(2**31))
     # drawn last, so that adding them left every earlier draw of a seed as it was
     plain = rng.random() < r.floor_plain
@@ -80,6 +85,9 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
     drawn["floor_texture"] = "plain" if plain else base.floor_texture
     if plain:
         drawn["floor_color"] = [_r(min(grey * h, 1.0)) for h in hue]
+    for name, spec in randomized_knobs():
+        if spec.late:
+            drawn[name] = draw(name, spec)
     out = dataclasses.replace(base)
     for key, value in drawn.items():  # a draw must be a valid [sim] table (replayable)
         try:
