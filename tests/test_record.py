@@ -131,6 +131,8 @@ def test_report_writes_a_video_at_real_pace_and_a_plot(sim_run, tmp_path):
     ok, last = video.read()
     assert ok and last[2, 200, 2] > 200 and last[2, 200, :2].max() < 60  # the red stop frame
     assert (rec / "run.png").stat().st_size > 10_000
+    assert cv2.imread(str(rec / "run.png")).shape[1] == 1700, "a sim run's map beside the plots"
+    assert "H.264" in proc.stdout or "no H.264 encoder" in proc.stdout, "says which codec"
     # a bare telemetry file: the plot only
     telemetry = tmp_path / "t.jsonl"
     shutil.copy(rec.parent / "t.jsonl", telemetry)
@@ -259,3 +261,18 @@ def test_eval_video_records_episodes_that_replay(tmp_path):
     assert len(recording.ticks) == result["episode_steps"] == recording.summary["frames_written"]
     assert recording.events[-1]["success"] == (result["success_rate"] == 1.0)
     assert replay(str(episode))["mu_max_abs_diff"] <= 1e-6
+
+
+def test_replay_threshold_prints_only_the_ticks_over_it(sim_run, tmp_path, capsys):
+    from jetbot_rt.cli import main
+
+    rec, _ = sim_run
+    other = policy_models.constant(tmp_path / "still.onnx", (0.0, 0.0))
+    recorded = np.abs(np.array([r["mu"] for r in Recording.open(rec).ticks])).max(axis=1)
+    threshold = float(np.median(recorded))
+    assert main(["replay", str(rec), "--policy", str(other), "--threshold", f"{threshold}"]) == 0
+    out = capsys.readouterr().out
+    printed = [int(line.split()[1]) for line in out.splitlines() if line.startswith("tick ")]
+    over = int((recorded > threshold).sum())
+    assert 0 < len(printed) == over < len(recorded)
+    assert f"over {threshold:g}: {over} ticks" in out

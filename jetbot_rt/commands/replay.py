@@ -29,10 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", metavar="DIR", help="a directory written by run --record")
     parser.add_argument("--policy", help="ONNX policy to replay (default: the recorded one)")
     parser.add_argument("--threshold", type=float, default=1e-4,
-                        help="|mu difference| above which a tick is reported (default 1e-4)")
+                        help="|mu difference| above which a tick is printed (default 1e-4; "
+                             "0: every tick that differs at all); --json prints every tick")
     parser.add_argument("--json", action="store_true",
-                        help="per-tick lines and the summary as JSON; the last line is the "
-                             "summary, with mu_max_abs_diff")
+                        help="a JSON line per tick (every tick: data for a program) and the "
+                             "summary; the last line is the summary, with mu_max_abs_diff")
 
 
 def policy_config(recording: Recording) -> PolicyConfig:
@@ -119,11 +120,10 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             print(json.dumps({"tick": record["tick"], "mu_recorded": record["mu"],
                               "mu": [float(m) for m in mu], "abs_diff": worst}))
-        else:
-            flag = "  over" if worst > args.threshold else ""
+        elif worst > args.threshold:  # for people: only the ticks that differ that much
             print(f"tick {record['tick']:6d}  recorded [{record['mu'][0]:+.6f} "
                   f"{record['mu'][1]:+.6f}]  replayed [{mu[0]:+.6f} {mu[1]:+.6f}]  "
-                  f"|diff| {worst:.2e}{flag}")
+                  f"|diff| {worst:.2e}")
 
     summary = replay(recording, policy, args.threshold, emit)
     summary.update(policy_sha256=sha,

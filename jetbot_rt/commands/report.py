@@ -1,7 +1,10 @@
 """``jetbot-rt report DIR``: look at a run. Writes ``run.mp4`` (the frames at their real pace
-with mu, duties and the tick's state drawn on them, a marker at a safe stop) and ``run.png``
-(mu, duties, tick time, frame age, overruns and events on one time axis) beside the recording,
-and prints the summary. On a bare telemetry JSONL file it writes ``<name>.png`` only.
+with mu, duties and the tick's state drawn on them, a marker where the run stopped: red for a
+fault, grey for an end it chose) and ``run.png`` (mu, duties, tick time, frame age, overruns,
+faults and takeovers on one time axis; for a sim run, the path seen from above with the goal)
+beside the recording, and prints the summary. On a bare telemetry JSONL file it writes
+``<name>.png`` only. The video is H.264 where this OpenCV's FFmpeg has an encoder for it (pip's
+wheels have none), else MPEG-4 Part 2 (mp4v), and the output line says which.
 
 The recording is untrusted (``recording/reader.py`` validates it) and so is the directory it
 sits in: each output is written to a new file created without following links and renamed into place
@@ -44,6 +47,14 @@ DISPLAY_LIMIT = 1e6
 """mu is plotted clipped to this: a finite but huge value would overflow the axis range."""
 EXIT_NOT_WRITTEN = 1
 """An output could not be written (disk full, no permission): not bad input (2)."""
+CODECS = (("avc1", "H.264"), ("mp4v", "mp4v"))
+"""Tried in this order. VP9 (vp09) plays in browsers too and pip's OpenCV has it, but it took
+120 ms a frame here against mp4v's 4: 30 times the report's time."""
+NO_H264 = ("this OpenCV's FFmpeg has no H.264 encoder, so browsers may not play it; "
+           "`ffmpeg -i run.mp4 -c:v libx264 -pix_fmt yuv420p run-h264.mp4` converts it")
+HUMAN = "human"
+"""A tick record's ``driver`` while a person drives (``jetbot-rt drive``'s takeover)."""
+FAULT_COLOR, ORDERLY_COLOR, HUMAN_COLOR = "tab:red", "tab:gray", "tab:purple"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -132,8 +143,14 @@ def plot(recording: Recording, out_dir: Path, name: str) -> bool:
     mu = np.clip(np.array([r["mu"] for r in ticks], dtype=float).reshape(-1, 2),
                  -DISPLAY_LIMIT, DISPLAY_LIMIT)
     cmd = np.array([r["cmd"] for r in ticks], dtype=float).reshape(-1, 2)
-    fig, axes = plt.subplots(5, 1, figsize=(12, 10), sharex=True,
-                             gridspec_kw={"height_ratios": [2, 2, 2, 1.5, 1]})
+    path = positions(ticks)
+    fig = plt.figure(figsize=(17 if path is not None else 12, 10))
+    grid = fig.add_gridspec(5, 2 if path is not None else 1, height_ratios=[2, 2, 2, 1.5, 1],
+                            width_ratios=[3, 1.35] if path is not None else [1])
+    axes = [fig.add_subplot(grid[0, 0])]
+    axes += [fig.add_subplot(grid[row, 0], sharex=axes[0]) for row in range(1, 5)]
+    for axis in axes[:-1]:
+        axis.tick_params(labelbottom=False)
     rows = [
         (axes[0], [(mu[:, 0], "mu left"), (mu[:, 1], "mu right")], "mu"),
         (axes[1], [(cmd[:, 0], "duty left"), (cmd[:, 1], "duty right")], "duty"),
@@ -155,17 +172,27 @@ def plot(recording: Recording, out_dir: Path, name: str) -> bool:
     if missing:
         axes[3].plot(missing, [0] * len(missing), "|", color="tab:red", label="frame dropped")
         axes[3].legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8)
+    spans = human_spans(recording)
+    for start, end in spans:
+        for axis in axes:
+            axis.axvspan(start, end, color=HUMAN_COLOR, alpha=0.12, linewidth=0)
+    if spans:
+        axes[0].plot([], [], color=HUMAN_COLOR, alpha=0.4, linewidth=6,
+                     label=f"a person drives ({len(spans)}x)")
+        axes[0].legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8)
     for event in recording.events:
-        if event["event"] in ("start", "end"):
+        if event["event"] in ("start", "end") or event["event"] in TAKEOVER_EVENTS:
             continue
-        color = "tab:red" if event.get("fault", True) else "tab:gray"
+        color = event_color(event)
         for axis in axes:
             axis.axvline(event["t"], color=color, linestyle="--", linewidth=1)
-        axes[0].annotate(f"{event['event']}: {event.get('reason', '')}"[:70],
+        axes[0].annotate(f"{event_label(event)}: {event.get('reason', '')}"[:70],
                          (event["t"], 1.0), xycoords=("data", "axes fraction"),
                          xytext=(-4, -4), textcoords="offset points", ha="right", va="top",
                          fontsize=8, color=color,
                          bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
+    if path is not None:
+        draw_map(fig.add_subplot(grid[:, 1]), recording, path, spans)
     axes[4].yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=4, integer=True))
     axes[-1].set_xlabel("t (s)")
     title = str(recording.path)
@@ -180,6 +207,93 @@ def plot(recording: Recording, out_dir: Path, name: str) -> bool:
     finally:
         plt.close(fig)
     return True
+
+
+TAKEOVER_EVENTS = ("takeover", "handback")
+
+
+def is_fault(event: dict[str, Any]) -> bool:
+    """A safe stop after a fault; an event without ``fault`` is none (a takeover, a note)."""
+    return bool(event.get("fault", False))
+
+
+def event_color(event: dict[str, Any]) -> str:
+    return FAULT_COLOR if is_fault(event) else ORDERLY_COLOR
+
+
+def event_label(event: dict[str, Any]) -> str:
+    if event["event"] == "safe_stop":
+        return "fault, safe stop" if is_fault(event) else "stopped"
+    return str(event["event"])
+
+
+def human_spans(recording: Recording) -> list[tuple[float, float]]:
+    """(start, end) times while a person drove: from the ticks' ``driver`` where recorded,
+    else from ``takeover``/``handback`` events; none in a recording that has neither."""
+    ticks = recording.ticks
+    spans: list[tuple[float, float]] = []
+    start: float | None = None
+    if any("driver" in r for r in ticks):
+        for record in ticks:
+            human = record.get("driver") == HUMAN
+            if human and start is None:
+                start = record["t"]
+            elif not human and start is not None:
+                spans.append((start, record["t"]))
+                start = None
+    else:
+        for event in sorted(recording.events, key=lambda e: e["t"]):
+            if event["event"] == "takeover" and start is None:
+                start = event["t"]
+            elif event["event"] == "handback" and start is not None:
+                spans.append((start, event["t"]))
+                start = None
+    if start is not None and ticks:
+        spans.append((start, ticks[-1]["t"]))
+    return spans
+
+
+def positions(ticks: list[dict[str, Any]]) -> np.ndarray | None:
+    """The recorded (t, x, y) of the ticks that have a ``pose`` (the sim's), or None."""
+    rows = [(r["t"], r["pose"][0], r["pose"][1]) for r in ticks if "pose" in r]
+    return np.array(rows, dtype=float) if len(rows) >= 2 else None
+
+
+def draw_map(axis: Any, recording: Recording, path: np.ndarray,
+             spans: list[tuple[float, float]]) -> None:
+    """The path seen from above (x forward at the start, y left), the goal where the sim
+    state has one, where a person drove, and where the run stopped."""
+    t, x, y = path[:, 0], path[:, 1], path[:, 2]
+    axis.plot(x, y, color="tab:blue", linewidth=1.5, label="path")
+    for index, (start, end) in enumerate(spans):
+        inside = (t >= start) & (t <= end)
+        axis.plot(x[inside], y[inside], color=HUMAN_COLOR, linewidth=4, alpha=0.6,
+                  label="a person drives" if index == 0 else None)
+    axis.plot(x[0], y[0], "o", color="tab:green", markersize=8, label="start")
+    goals = [r["goal"] for r in recording.ticks if "goal" in r]
+    extent = [x, y]
+    if goals:
+        goal = np.array(goals[-1], dtype=float)
+        axis.plot(goal[0], goal[1], "s", color="tab:red", markersize=10, label="goal")
+        extent = [np.append(x, goal[0]), np.append(y, goal[1])]
+    stops = [e for e in recording.events if e["event"] == "safe_stop"]
+    if stops:
+        color = event_color(stops[0])
+        axis.plot(x[-1], y[-1], "X", color=color, markersize=11,
+                  label=event_label(stops[0]))
+    else:
+        axis.plot(x[-1], y[-1], "X", color="black", markersize=9, label="end")
+    # a square of the path and the goal, equal scales: a turn looks like the turn it was
+    half = max(np.ptp(extent[0]), np.ptp(extent[1])) / 2 + 0.15
+    centre = [(values.min() + values.max()) / 2 for values in extent]
+    axis.set_xlim(centre[0] - half, centre[0] + half)
+    axis.set_ylim(centre[1] - half, centre[1] + half)
+    axis.set_aspect("equal", adjustable="box")
+    axis.set_xlabel("x (m)")
+    axis.set_ylabel("y (m)")
+    axis.set_title("from above", fontsize=10)
+    axis.grid(alpha=0.3)
+    axis.legend(loc="best", fontsize=8)
 
 
 # ---- video ---------------------------------------------------------------------------------
@@ -209,8 +323,12 @@ def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
     canvas[:height] = cv2.resize(image[:, :, ::-1], (width, height),
                                  interpolation=cv2.INTER_NEAREST)
     white = (230, 230, 230)
+    fault = stop is not None and is_fault(stop)
+    state = str(record.get("state") or "")[:24]
+    if record.get("driver") == HUMAN:
+        state += " (a person drives)"
     text = (f"t {record['t']:7.2f} s  tick {record['tick']}  "
-            f"{'SAFE STOP' if stop else str(record.get('state') or '')[:24]}")
+            f"{('SAFE STOP' if fault else 'STOPPED') if stop else state}")
     cv2.putText(canvas, text, (6, height + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, white, 1)
     mu, cmd = record["mu"], ((stop.get("cmd") or [0.0, 0.0]) if stop else record["cmd"])
     _bar(canvas, 6, height + 26, mu[0], "mu L")
@@ -224,10 +342,13 @@ def compose(image: np.ndarray, record: dict[str, Any], max_speed: float,
         cv2.putText(canvas, "frame dropped: previous shown", (6, 20),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 200, 255), 1)
     if stop:
-        cv2.rectangle(canvas, (0, 0), (width - 1, height - 1), (0, 0, 255), 6)
-        cv2.putText(canvas, "SAFE STOP", (12, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 255), 2)
+        # red for a fault; an end the run chose (a duration, a signal, `jetbot-rt stop`) grey
+        color = (0, 0, 255) if fault else (200, 200, 200)
+        cv2.rectangle(canvas, (0, 0), (width - 1, height - 1), color, 6)
+        cv2.putText(canvas, "SAFE STOP" if fault else "STOPPED", (12, 40),
+                    cv2.FONT_HERSHEY_SIMPLEX, 1.0, color, 2)
         cv2.putText(canvas, str(stop.get("reason", ""))[:48], (12, 64),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 255), 1)
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, color, 1)
     return canvas
 
 
@@ -248,6 +369,7 @@ class Video:
         self.first: float | None = None  # the shown time of the first video frame
         self.shortened = 0  # pauses shortened to MAX_GAP_S
         self.cut = False  # stopped at MAX_VIDEO_FRAMES
+        self.codec = ""  # what the video is: H.264 or mp4v
 
     def write(self, out_dir: Path, name: str) -> bool:
         """False when no tick has a frame (nothing written); ``OSError`` when the file cannot
@@ -301,10 +423,8 @@ class Video:
               until: float, marked: bool) -> None:
         frame = compose(image, record, self.max_speed, self.stop if marked else None)
         if self.writer is None:
-            self.writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), self.fps,
-                                          (frame.shape[1], frame.shape[0]))
-            if not self.writer.isOpened():
-                raise OSError(errno.EIO, "OpenCV cannot write mp4v video here")
+            self.writer, self.codec = open_writer(path, self.fps,
+                                                  (frame.shape[1], frame.shape[0]))
         while self._slot() < until:
             if self.written >= MAX_VIDEO_FRAMES:
                 self.cut = True
@@ -315,6 +435,20 @@ class Video:
                     raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             self.writer.write(frame)
             self.written += 1
+
+
+def open_writer(path: str, fps: float, size: tuple[int, int]) -> tuple[Any, str]:
+    """The first of ``CODECS`` this OpenCV can write (the probe is opening it: an FFmpeg
+    without the encoder refuses), and its name. OpenCV's and FFmpeg's complaints about a
+    missing encoder (FFmpeg's go straight to file descriptor 2) are silenced: the output line
+    says which codec it is."""
+    for fourcc, name in CODECS:
+        with stderr_silenced():
+            writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*fourcc), fps, size)
+        if writer.isOpened():
+            return writer, name
+        writer.release()
+    raise OSError(errno.EIO, "OpenCV cannot write H.264 or mp4v video here")
 
 
 MIN_FREE_BYTES = 4 * 1024 * 1024
@@ -343,6 +477,24 @@ def mp4_complete(fd: int) -> bool:
         found = found or header[4:8] == b"moov"
         offset += length
     return found and offset == size
+
+
+@contextlib.contextmanager
+def stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 to /dev/null for a moment (the report is one thread: nothing of
+    ours is lost)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        null = os.open(os.devnull, os.O_WRONLY | os.O_CLOEXEC)
+        try:
+            os.dup2(null, 2)
+        finally:
+            os.close(null)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 @contextlib.contextmanager
@@ -389,8 +541,10 @@ def run(args: argparse.Namespace) -> int:
                 f"; {video.shortened} pauses over {MAX_GAP_S:g} s shortened to it"
                 if video.shortened else "",
                 f"; cut at {MAX_VIDEO_FRAMES} frames" if video.cut else ""])
-            print(f"wrote {target} ({video.written} frames, {video.written / video.fps:.1f} s"
-                  f"{notes})", flush=True)
+            print(f"wrote {target} ({video.written} frames, {video.written / video.fps:.1f} s, "
+                  f"{video.codec}{notes})", flush=True)
+            if video.codec != "H.264":
+                print(f"note: {target.name} is MPEG-4 Part 2: {NO_H264}", flush=True)
     except OSError as exc:
         print(f"jetbot-rt report: error: cannot write {shown(target)}: "
               f"{exc.strerror or exc}", file=sys.stderr, flush=True)

@@ -58,6 +58,9 @@ MAX_MS = 1e9
 MAX_COUNT = 2**53
 """Tick numbers, frame indices, counters: integers a float can still hold exactly."""
 RATE_HZ = (0.1, 1000.0)
+READABLE = tuple(range(1, VERSION + 1))
+"""Format versions this reader takes: 2 added the drive's tick keys (``driver``, ``human``,
+``policy_mu``), which a version 1 recording simply lacks."""
 
 
 class Invalid(Exception):
@@ -123,10 +126,11 @@ def check_meta(meta: Any) -> dict[str, Any]:
     """``meta.json``'s keys that jetbot_rt uses; the message of ``Invalid`` names the key."""
     if not isinstance(meta, dict):
         raise Invalid(f"must be a JSON object, got {_kind(meta)}")
-    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+    version = meta.get("version")
+    if meta.get("format") != FORMAT or isinstance(version, bool) or version not in READABLE:
         raise Invalid(f"recording format {str(meta.get('format'))[:40]!r} version "
-                      f"{str(meta.get('version'))[:10]!r}; this jetbot-rt reads {FORMAT!r} "
-                      f"version {VERSION}")
+                      f"{str(version)[:10]!r}; this jetbot-rt reads {FORMAT!r} "
+                      f"versions {', '.join(map(str, READABLE))}")
     size = meta.get("frame_size")
     if not isinstance(size, list) or len(size) != 2:
         raise Invalid(f"frame_size must be [width, height], got {_kind(size)}")
@@ -162,7 +166,12 @@ def check_summary(summary: Any) -> dict[str, Any]:
 
 
 TICK_KEYS = ("t", "tick", "state", "mu", "cmd", "frame_age_ms", "infer_ms", "tick_ms",
-             "overruns", "frame")
+             "overruns", "pose", "goal", "driver", "human", "policy_mu", "frame")
+"""``pose`` (x, y of the sim's [x, y, yaw]) and ``goal`` (sim only) for the report's map;
+``driver`` (``jetbot-rt drive``: human or policy) for its takeovers; ``human`` (the person's
+command in force, or null) and ``policy_mu`` (where a policy ran) for ``jetbot-train
+finetune`` (format version 2)."""
+MAX_POSITION_M = 1e6
 EVENT_KEYS = ("t", "event", "reason", "fault", "success", "cmd")
 
 
@@ -171,7 +180,7 @@ def _record_bound() -> int:
     lists of two floats, a large number per key, its slot in the list."""
     number = max(sys.getsizeof(2.0**60), sys.getsizeof(2**60))
     pair = sys.getsizeof([0.5, 0.5]) + 2 * number
-    return (sys.getsizeof(dict.fromkeys(TICK_KEYS)) + 2 * pair + len(TICK_KEYS) * number
+    return (sys.getsizeof(dict.fromkeys(TICK_KEYS)) + 6 * pair + len(TICK_KEYS) * number
             + sys.getsizeof([None]))
 
 
@@ -215,7 +224,7 @@ class RecordChecker:
         kept = self._checked(record)
         held = sys.getsizeof(kept) + 8  # and its slot in the list of records
         for key, value in list(kept.items()):
-            if key in ("state", "event", "reason"):
+            if key in ("state", "event", "reason", "driver"):
                 kept[key] = self._kept_text(value)  # counts itself, unless shared
             elif isinstance(value, list):
                 held += sys.getsizeof(value) + sys.getsizeof(value[0]) + sys.getsizeof(value[1])
@@ -251,6 +260,17 @@ class RecordChecker:
             _number(record, key, -MAX_MS, MAX_MS)
         _integer(record, "overruns", 0)
         _text(record, "state")
+        _text(record, "driver")
+        pose = record.get("pose")
+        if pose is not None:
+            if not isinstance(pose, list) or len(pose) not in (2, 3):
+                raise Invalid(f"pose must be a list of 2 or 3 numbers, got {_kind(pose)}")
+            for index, value in enumerate(pose):
+                _number({f"pose[{index}]": value}, f"pose[{index}]", -MAX_POSITION_M,
+                        MAX_POSITION_M)
+        _pair(record, "goal", MAX_POSITION_M, optional=True)
+        _pair(record, "human", 1.0, optional=True)
+        _pair(record, "policy_mu", math.inf, optional=True)
         if self.with_frames:
             frame = _integer(record, "frame", 0, self.ticks, optional=True)
             if frame is not None:
