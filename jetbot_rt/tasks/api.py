@@ -72,12 +72,30 @@ class Task:
     training: ClassVar[dict[str, Any]] = {}
     """The trainer's option defaults for this task (``jetbot-train train`` flags spelled as
     ``PPOArgs`` fields, ``model`` a dict); the command line and ``[train]`` override them."""
+    curriculum: ClassVar[bool] = False
+    """Whether ``scene`` reads ``difficulty`` (``jetbot-train train --curriculum`` refuses a
+    task that does not say so: its scenes would not change)."""
+    difficulty: float = 1.0
+    """0 (the easiest scenes) .. 1 (the task as evaluated). The trainer's ``--curriculum``
+    raises it as the student succeeds (docs/CURRICULUM.md); everything else -- evaluation,
+    ``jetbot-rt run --backend sim``, a plain training -- leaves it at 1. Read it in ``scene``,
+    e.g. through ``between``; at 1 the scenes must be the task's full ones."""
 
     def scene(self, rng: np.random.Generator, start_noise: bool) -> Scene:
         """One episode's scene, drawn from ``rng`` alone (episodes replay from their seed).
         ``start_noise`` False: the robot at its nominal pose; draw the same numbers either way,
         so that the pieces of a seed do not depend on it."""
         raise NotImplementedError
+
+    def between(self, easy: tuple[Any, ...], full: tuple[Any, ...]) -> tuple[Any, ...]:
+        """A range (or any tuple of numbers) at this ``difficulty``: ``easy`` at 0, ``full``
+        at 1 (exactly: a seed's scene at difficulty 1 is the one it always was), each number
+        linear in between; rounded to the nearest integer where both ends are integers."""
+        if self.difficulty >= 1.0:
+            return full
+        d = max(0.0, float(self.difficulty))
+        return tuple(round(e + d * (f - e)) if isinstance(e, int) and isinstance(f, int)
+                     else e + d * (f - e) for e, f in zip(easy, full))
 
     def outcome(self, scene: Scene, world: WorldView) -> dict[str, Any]:
         """The success test on the world as it is now: a dict with ``is_success`` (bool) and

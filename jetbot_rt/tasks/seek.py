@@ -3,6 +3,7 @@
 Draw order from the RNG (fixed; episodes are reproducible from their seed): start noise
 ``dx, dy`` then ``dyaw`` (always drawn, applied only with ``start_noise``), then the goal's
 distance and bearing, then the number of distractors and each one's place and colour.
+Below difficulty 1 (``--curriculum``) the goal is nearer and the distractors fewer.
 Why these numbers: docs/TRAINING.md ("The seek task").
 """
 
@@ -57,6 +58,12 @@ class Seek(GoalTask):
     margin on each side, so it is in the first frame."""
     distractors = (1, 2)
     """Inclusive range of the number of distractor blocks (green or blue)."""
+    curriculum = True
+    easy_goal_distance = (0.35, 0.5)
+    """m; ``goal_distance`` at difficulty 0 (``--curriculum``): the goal near, big in the first
+    frame; the far end widens linearly to 1.2 m at difficulty 1."""
+    easy_distractors = (0, 0)
+    """``distractors`` at difficulty 0: none; one from difficulty 0.5, up to two at 1."""
     min_block_spacing = 0.25
     """m; between any two block centres."""
     path_clearance = 0.15
@@ -84,13 +91,15 @@ class Seek(GoalTask):
         def place(distance: float, bearing: float) -> np.ndarray:
             return start + distance * np.array([math.cos(yaw + bearing), math.sin(yaw + bearing)])
 
-        goal = place(rng.uniform(*self.goal_distance), rng.uniform(-goal_bearing, goal_bearing))
+        goal_distance = self.between(self.easy_goal_distance, self.goal_distance)
+        distractors = self.between(self.easy_distractors, self.distractors)
+        goal = place(rng.uniform(*goal_distance), rng.uniform(-goal_bearing, goal_bearing))
         blocks = [goal]
         pieces = [Block((float(goal[0]), float(goal[1])), name=GOAL)]
-        count = int(rng.integers(self.distractors[0], self.distractors[1] + 1))
+        count = int(rng.integers(distractors[0], distractors[1] + 1))
         for _ in range(count):
             for _attempt in range(200):
-                where = place(rng.uniform(0.3, self.goal_distance[1] + 0.2),
+                where = place(rng.uniform(0.3, goal_distance[1] + 0.2),
                               rng.uniform(-half_fov, half_fov))
                 color = str(rng.choice(("green", "blue")))
                 if (in_block_area(where)

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.tasks import load_task
+from jetbot_rt.train.curriculum import Schedule, metric_fields, send
 from jetbot_rt.train.dagger_sampler import LabelSampler
 from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
@@ -149,7 +150,8 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Any, data: Dataset,
     student, teacher = outcomes[False], outcomes[True]
     return {"beta": round(beta, 4), "episodes": len(student) + len(teacher), "steps": steps,
             "success_rate": round(float(np.mean(student)), 3) if student else "",
-            "expert_success_rate": round(float(np.mean(teacher)), 3) if teacher else ""}
+            "expert_success_rate": round(float(np.mean(teacher)), 3) if teacher else "",
+            "student_successes": student}
 
 
 def learning_rate_at(args: DAggerArgs, iteration: int) -> float:
@@ -180,7 +182,7 @@ class _Run:
     def __init__(self, options: DAggerArgs) -> None:
         options.validate()
         self.options = options
-        self.run = RunDirectory(options.out, METRIC_FIELDS)
+        self.run = RunDirectory(options.out, metric_fields(METRIC_FIELDS, options))
         saved = self.run.prepare(options.resume)
         torch.manual_seed(options.seed)
         model, resumed = starting_model(options, saved, "dagger")
@@ -196,7 +198,17 @@ class _Run:
         self.max_speed = max_speed_of(options.config, load_task(options.task))
         self.expert = task_expert(options.task, {name: getattr(options, name)
                                                  for name in EXPERT_SETTINGS})
+        self.schedule = Schedule.of(options, self.run, resumed is not None, self.progress.update)
         self.envs: VectorEnv | None = None
+
+    def start_envs(self) -> VectorEnv:
+        """The env workers, at the curriculum's difficulty if there is one."""
+        self.envs = make_vector_env(labelling_spec(self.options.task, self.options.config,
+                                                   self.model.config),
+                                    self.options.num_envs, self.options.workers)
+        if self.schedule is not None:
+            send(self.envs, self.schedule.difficulty)
+        return self.envs
 
     def iteration(self, data: Dataset, bar: tqdm) -> dict[str, Any]:
         """Collect an iteration's episodes in the workers, regress on the aggregate; the
@@ -206,7 +218,7 @@ class _Run:
         torch.set_num_threads(1)
         began = time.perf_counter()
         row = collect(self.envs, self.model, self.expert, data, options, progress.update, bar)
-        steps = row.pop("steps")
+        steps, student = row.pop("steps"), row.pop("student_successes")
         torch.set_num_threads(options.torch_threads)
         for group in self.optimizer.param_groups:
             group["lr"] = learning_rate_at(options, progress.update)
@@ -217,6 +229,8 @@ class _Run:
                    dataset=len(data), loss=round(loss, 5), collect_s=round(collected - began, 1),
                    regress_s=round(time.perf_counter() - collected, 1),
                    wall_s=round(progress.wall_s(), 1))
+        if self.schedule is not None:
+            self.schedule.after(row, student, self.envs)
         self.run.append_metrics(row)
         if options.snapshots and progress.update % options.snapshots == 0:
             self.run.export_policy(self.model.eval(), options.task, self.max_speed,
@@ -246,10 +260,7 @@ def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
                disable=not options.progress, unit="step", dynamic_ncols=True)
     interrupted = False
     try:  # from the workers' start on, Ctrl-C saves and prints the --resume command
-        run.envs = make_vector_env(labelling_spec(options.task, options.config,
-                                                  run.model.config),
-                                   options.num_envs, options.workers)
-        data = Dataset(run.envs.single_observation_space.shape)
+        data = Dataset(run.start_envs().single_observation_space.shape)
         while progress.update < options.iterations:
             row = run.iteration(data, bar)
             bar.set_postfix(succ=row["success_rate"], loss=row["loss"], refresh=False)

@@ -8,7 +8,9 @@ rendered after that step is the next observation. ``reset`` renders the first fr
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import math
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -55,6 +57,10 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ``task``: a task's name (``jetbot_rt.tasks.load_task``: a built-in, ``FILE.py:Class``,
     ``module:Class``, an installed plugin's) or a ``Task``.
+
+    ``difficulty`` (settable, also through a vector env's ``set_attr``): the task's
+    ``Task.difficulty`` for the scenes of the next resets; 1 (the task as evaluated) unless a
+    curriculum sets it.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 30}
@@ -102,6 +108,24 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.scene: Scene = self.world.scene
         self.sim_params: dict[str, Any] = {}
         """The last reset's [sim] knobs (``randomize.DRAWN``), as in its ``info``."""
+
+    @property
+    def difficulty(self) -> float:
+        return float(self.task.difficulty)
+
+    @difficulty.setter
+    def difficulty(self, value: float) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                not (math.isfinite(value) and 0.0 <= value <= 1.0):
+            raise UsageError(f"difficulty must be a number in [0, 1], got {value!r}")
+        if not self.task.curriculum and value != 1.0:
+            raise UsageError(f"task {self.task.name!r} has no curriculum (its scene does not "
+                             "read Task.difficulty): docs/CURRICULUM.md")
+        if float(value) != self.difficulty:
+            # load_task hands out one instance per name: this env's own copy, so that no
+            # other env of the process (an evaluation's) sees the change
+            self.task = copy.copy(self.task)
+            self.task.difficulty = float(value)
 
     def _scene(self, options: dict[str, Any]) -> Scene:
         scene = self.task.scene(self.np_random, bool(options.get("start_noise",

@@ -17,7 +17,14 @@ import textwrap
 from typing import Any
 
 from jetbot_rt.errors import UsageError
-from jetbot_rt.train.hyperparams import SIGNED, TASK_DEFAULTS, DAggerArgs, ModelConfig, PPOArgs
+from jetbot_rt.train.hyperparams import (
+    SIGNED,
+    TASK_DEFAULTS,
+    CurriculumOptions,
+    DAggerArgs,
+    ModelConfig,
+    PPOArgs,
+)
 
 SKIPPED = ("task", "config", "model")
 """Fields with flags of their own: ``--task``, ``--config``; ``model`` as ``--model-*``."""
@@ -37,10 +44,14 @@ def positive_int(text: str) -> int:
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """Attribute docstrings (the string literal after each field) of a dataclass."""
+    """Attribute docstrings (the string literal after each field) of a dataclass and of the
+    dataclasses it derives from."""
+    docs: dict[str, str] = {}
+    for base in reversed(cls.__mro__[1:]):
+        if dataclasses.is_dataclass(base):
+            docs.update(field_docs(base))
     tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     body = tree.body[0].body  # type: ignore[attr-defined]
-    docs: dict[str, str] = {}
     for node, following in itertools.pairwise(body):
         if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
                 and isinstance(following, ast.Expr)
@@ -90,8 +101,15 @@ def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
     and ``--model-name`` per ``ModelConfig``."""
     group = parser.add_argument_group("PPO options (also settable in a [train] table)")
     docs = field_docs(PPOArgs)
+    curriculum = parser.add_argument_group(
+        "curriculum (PPO and DAgger; docs/CURRICULUM.md)")
+    shared = {f.name for f in dataclasses.fields(CurriculumOptions)}
     for spec in dataclasses.fields(PPOArgs):
         if spec.name in SKIPPED:
+            continue
+        if spec.name in shared:
+            _add(curriculum, ["--" + spec.name.replace("_", "-")], spec.name, spec,
+                 docs.get(spec.name, ""), {})
             continue
         per_task = {t: d[spec.name] for t, d in TASK_DEFAULTS.items() if spec.name in d}
         flags = ["--" + spec.name.replace("_", "-"), *ALIASES.get(spec.name, ())]

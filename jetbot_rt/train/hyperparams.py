@@ -183,7 +183,42 @@ def usable_cores() -> int:
 
 
 @dataclass
-class PPOArgs:
+class CurriculumOptions:
+    """The curriculum's options, PPO's and DAgger's alike (docs/CURRICULUM.md)."""
+
+    curriculum: bool = False
+    """Train on easy scenes first: start at --curriculum-start difficulty and raise it by
+    --curriculum-step each time --curriculum-threshold of the last --curriculum-window
+    episodes at that difficulty succeed (DAgger: the student's episodes), up to 1, the task
+    as evaluated; metrics.csv gains a difficulty column. For tasks whose scene reads
+    Task.difficulty (seek). Off: difficulty 1 throughout."""
+    curriculum_start: float = 0.0
+    """The first difficulty, 0 (easiest) .. 1."""
+    curriculum_threshold: float = 0.8
+    """Success rate over the window that raises the difficulty, 0 .. 1."""
+    curriculum_window: int = 40
+    """Episodes finished at the current difficulty that the success rate is taken over
+    (counted afresh after each raise)."""
+    curriculum_step: float = 0.25
+    """How much one raise adds to the difficulty, 0 .. 1."""
+
+    def validate_curriculum(self) -> None:
+        """``OptionError`` for a curriculum option out of range; ``UsageError`` for
+        ``curriculum`` on a task whose scene does not read the difficulty."""
+        for name, low_open in (("curriculum_start", False), ("curriculum_threshold", True),
+                               ("curriculum_step", True)):
+            value = getattr(self, name)
+            if not (0.0 < value <= 1.0 if low_open else 0.0 <= value <= 1.0):
+                bounds = "(0, 1]" if low_open else "[0, 1]"
+                raise OptionError(name, f"must be in {bounds}, got {value_text(value)}")
+        task = getattr(self, "task", "")
+        if self.curriculum and not load_task(task).curriculum:
+            raise UsageError(f"task {task!r} has no curriculum (its scene does not read "
+                             "Task.difficulty; docs/CURRICULUM.md says how to give it one)")
+
+
+@dataclass
+class PPOArgs(CurriculumOptions):
     task: str = "forward"
     """Task name (``jetbot_rt.tasks.load_task``: a built-in, FILE.py:Class, module:Class)."""
     total_timesteps: int = 40_000
@@ -294,6 +329,7 @@ class PPOArgs:
     def validate(self) -> None:
         """``OptionError`` for the first option out of range (before any env starts)."""
         check_fields(self, SIGNED)
+        self.validate_curriculum()
         if self.ray is not None and self.workers is not None and \
                 not 0 < self.workers <= self.num_envs:
             raise OptionError("workers", f"with ray must be 1 .. num_envs ({self.num_envs}), "
@@ -374,7 +410,7 @@ def check_fields(options: Any, signed: tuple[str, ...] = ()) -> None:
 
 
 @dataclass
-class DAggerArgs:
+class DAggerArgs(CurriculumOptions):
     task: str = "seek"
     """Task name; the task needs an expert (``Task.expert``: seek's)."""
     out: str = "runs/seek"
@@ -452,6 +488,7 @@ class DAggerArgs:
             raise UsageError(f"task {self.task!r} has no expert for DAgger (its Task.expert() "
                              "returns None); train it with --algo ppo")
         check_fields(self, SIGNED)
+        self.validate_curriculum()
         if self.workers not in (None, 0, self.num_envs):
             raise OptionError("workers", f"must be 0 or num_envs ({self.num_envs}), got "
                                          f"{self.workers}")

@@ -18,6 +18,7 @@ import torch
 from tqdm import tqdm
 
 from jetbot_rt.tasks import load_task
+from jetbot_rt.train.curriculum import Schedule, metric_fields, send
 from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
 from jetbot_rt.train.hyperparams import PPOArgs
@@ -166,7 +167,7 @@ class _Run:
         options.validate()
         self.options = options
         self.device = resolve_device(options.device)
-        self.run = RunDirectory(options.out, METRIC_FIELDS)
+        self.run = RunDirectory(options.out, metric_fields(METRIC_FIELDS, options))
         saved = self.run.prepare(options.resume)
         torch.manual_seed(options.seed)
         torch.set_num_threads(options.torch_threads)
@@ -182,6 +183,9 @@ class _Run:
         self.rng = np.random.default_rng(options.seed + self.progress.update)
         self.max_speed = max_speed_of(options.config, load_task(options.task))
         self.source = make_rollout_source(options, self.model, self.device)
+        self.schedule = Schedule.of(options, self.run, resumed is not None, self.progress.update)
+        if self.schedule is not None:
+            send(self.source.envs, self.schedule.difficulty)
         if resumed is not None and resumed.reward_rms is not None:
             rms, state = self.source.normalizer.return_rms, resumed.reward_rms
             rms.mean, rms.var, rms.count = (np.float64(state["mean"]),
@@ -209,6 +213,9 @@ class _Run:
         torch.set_num_threads(options.torch_threads)
         progress.update, progress.global_step = update, progress.global_step + rollout.steps
         row = _metrics_row(progress, self.episodes, stats, self.optimizer, self.source)
+        if self.schedule is not None:
+            self.schedule.after(row, (success for *_, success in rollout.episodes),
+                                self.source.envs)
         self.steps_per_s = row["steps_per_s"]
         self.run.append_metrics(row)
         if self.writer is not None:

@@ -24,6 +24,7 @@ raises ``WorkersLost``. ``restarts`` counts the events; each is also one line on
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import socket
 import sys
@@ -96,6 +97,10 @@ class EnvWorker:
         return (np.stack(frames), np.asarray(rewards, dtype=np.float64),
                 np.asarray(terminated, dtype=np.bool_), np.asarray(truncated, dtype=np.bool_),
                 infos)
+
+    def set_attr(self, name: str, values: Sequence[Any]) -> None:
+        for env, value in zip(self.envs, values, strict=True):
+            env.set_wrapper_attr(name, value)
 
     def close(self) -> None:
         for env in self.envs:
@@ -170,6 +175,8 @@ class RayVectorEnv(VectorEnv):
         self.restarts = 0
         self.worker_restarts = [0] * workers
         self._seeds: list[int | None] = [None] * self.num_envs
+        self._attrs: dict[str, list[Any]] = {}
+        """What ``set_attr`` set, by name: set again on an actor Ray restarts."""
         remote = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=0,
                             scheduling_strategy="SPREAD")(EnvWorker)
         self.actors = [remote.remote([env_fns[i] for i in block]) for block in self.blocks]
@@ -240,6 +247,25 @@ class RayVectorEnv(VectorEnv):
         return (self._obs.copy(), np.concatenate(rewards), np.concatenate(terminated),
                 np.concatenate(truncated), infos)
 
+    def set_attr(self, name: str, values: Any) -> None:
+        """Set an attribute of every env (``values``: one per env, or one for all), as
+        ``AsyncVectorEnv.set_attr`` does (the curriculum's difficulty)."""
+        values = list(values) if isinstance(values, (list, tuple)) else [values] * self.num_envs
+        if len(values) != self.num_envs:
+            raise ValueError(f"{len(values)} values for {self.num_envs} envs")
+        self._attrs[name] = values
+        lost = (self._ray.exceptions.RayActorError, self._ray.exceptions.ActorUnavailableError,
+                self._ray.exceptions.GetTimeoutError)
+        for actor, block in zip(self.actors, self.blocks, strict=True):
+            with contextlib.suppress(*lost):  # the next step finds it gone; _recover sets
+                self._ray.get(self._set_attrs(actor, block, {name: values}),  # them again
+                              timeout=self.step_timeout)
+
+    @staticmethod
+    def _set_attrs(actor: Any, block: range, attrs: dict[str, list[Any]]) -> list[Any]:
+        return [actor.set_attr.remote(name, values[block.start:block.stop])
+                for name, values in attrs.items()]
+
     def close_extras(self, **kwargs: Any) -> None:
         ray = self._ray
         for actor in self.actors:
@@ -277,6 +303,7 @@ class RayVectorEnv(VectorEnv):
         while True:
             remaining = deadline - time.monotonic()
             try:
+                self._set_attrs(self.actors[worker], block, self._attrs)  # before the reset
                 return ray.get(self.actors[worker].reset.remote(seeds, None),
                                timeout=max(remaining, 0.001))
             except ray.exceptions.ActorDiedError:
