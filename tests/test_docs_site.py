@@ -1,0 +1,106 @@
+"""The docs site (mkdocs.yml, scripts/docs_site.py): the reference pages are made from the code,
+so they name every config key and every flag; the site builds with warnings as errors, so a
+broken link or a page left out of the nav fails here as it fails in CI."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def site_hook():
+    spec = importlib.util.spec_from_file_location("docs_site", ROOT / "scripts" / "docs_site.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def pages(site_hook) -> dict[str, str]:
+    return site_hook.reference_pages()
+
+
+def _section_of(page: str, heading: str) -> str:
+    """The part of ``page`` under the ``## heading`` line, up to the next one."""
+    start = page.index(f"\n## {heading}\n")
+    end = page.find("\n## ", start + 1)
+    return page[start:end if end != -1 else None]
+
+
+def test_the_config_reference_names_every_key_of_every_section_with_what_it_does(
+        site_hook, pages):
+    page = pages["reference/config.md"]
+    keys = list(site_hook.config_keys())
+    assert len(keys) > 80
+    for section, key, _, _ in keys:
+        part = _section_of(page, f"[{section}]")
+        match = re.search(rf"^`{key} = [^`]*`\n:   \*(.+)$", part, re.MULTILINE)
+        assert match, f"[{section}] {key} is missing from the reference"
+        said = match.group(1).split(".* ", 1)[-1]
+        assert len(said) > 10, f"[{section}] {key} has no description: {match.group(0)!r}"
+
+
+def test_a_key_documented_only_in_the_default_file_takes_its_comment(site_hook):
+    comments = site_hook.default_config_comments(
+        "[motors]\n# I2C bus number and the chip's address.\ni2c_bus = 1\naddress = 0x60\n\n"
+        "[randomize]\nlatency = [0.0, 0.1]  # s\n# enabled = true\n")
+    assert comments[("motors", "i2c_bus")] == "I2C bus number and the chip's address."
+    assert comments[("motors", "address")] == comments[("motors", "i2c_bus")]
+    assert comments[("randomize", "latency")] == "s"
+    assert ("randomize", "enabled") not in comments
+
+
+@pytest.mark.parametrize("prog", ["jetbot-rt", "jetbot-train"])
+def test_the_cli_reference_names_every_subcommand_and_flag(site_hook, pages, prog):
+    parser = (site_hook.jetbot_rt_parser() if prog == "jetbot-rt"
+              else site_hook.jetbot_train_parser())
+    page = pages[f"reference/{prog}.md"]
+    subcommands = site_hook._subparsers(parser)
+    assert len(subcommands) >= 4
+    for name, sub in subcommands.items():
+        part = _section_of(page, f"{prog} {name}")
+        terms = " ".join(re.findall(r"^(`.*)\n:   \S", part, re.MULTILINE))
+        for action in sub._actions:
+            for flag in action.option_strings:
+                if flag not in ("-h", "--help"):
+                    assert re.search(rf"`{re.escape(flag)}[ `]", terms), \
+                        f"{prog} {name} {flag} is missing from the reference"
+
+
+def test_links_out_of_docs_reach_the_copied_file_and_a_broken_one_is_left_for_the_build(
+        site_hook):
+    text = ("[raw](../benchmarks/results/train.md) [gone](../benchmarks/results/nope.md) "
+            "[page](SIM.md#speed) [web](https://example.org/x)\n```\n[code](../x.md)\n```\n")
+    out, wanted = site_hook.rewrite_links(text, "docs/BENCHMARKS.md")
+    assert "[raw](benchmarks/results/train.md)" in out
+    assert "[gone](../benchmarks/results/nope.md)" in out  # mkdocs --strict reports it
+    assert "[page](SIM.md#speed)" in out and "(https://example.org/x)" in out
+    assert "[code](../x.md)" in out
+    assert wanted == {"benchmarks/results/train.md"}
+    readme, _ = site_hook.rewrite_links("![robot](docs/images/weak_wheel.png)", "README.md")
+    assert readme == "![robot](images/weak_wheel.png)"
+
+
+def test_the_site_builds_with_warnings_as_errors(tmp_path):
+    """What .ci/run runs: mkdocs build --strict (a broken link, a missing page, a page not in
+    the nav: exit 1)."""
+    done = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+        env={"NO_MKDOCS_2_WARNING": "1", "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)},
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    site = tmp_path / "site"
+    assert "mkdocs build --strict" not in done.stderr
+    for page in ("index.html", "reference/config/index.html", "reference/jetbot-rt/index.html",
+                 "reference/jetbot-train/index.html", "BENCHMARKS/index.html"):
+        assert (site / page).is_file(), page
+    assert "rate_hz" in (site / "reference/config/index.html").read_text(encoding="utf-8")
