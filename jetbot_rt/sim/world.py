@@ -25,6 +25,7 @@ from jetbot_rt.sim import appearance
 from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
 from jetbot_rt.sim.lens import lens_warp
 from jetbot_rt.sim.motor import WheelMotors
+from jetbot_rt.sim.native_output import pybullet_chatter_filtered
 from jetbot_rt.sim.pybullet_import import import_pybullet
 from jetbot_rt.tasks.scene import BLOCK_HALF_SIZE, Block, Box, Piece, Scene, Tape, Wall, rgb
 
@@ -94,24 +95,27 @@ class JetbotWorld:
         if gui and sys.platform.startswith("linux") and not (
             os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
         ):
-            raise UsageError("--gui needs a display (DISPLAY is not set)")
-        self._client = p.connect(p.GUI if gui else p.DIRECT)
-        if self._client < 0:
-            raise UsageError("cannot open a PyBullet " + ("window" if gui else "client"))
-        self._gui = gui
-        if gui:
-            # The side panel shows the robot's camera (each render's RGB), nothing else.
-            for flag, on in ((p.COV_ENABLE_GUI, 1), (p.COV_ENABLE_RGB_BUFFER_PREVIEW, 1),
-                             (p.COV_ENABLE_DEPTH_BUFFER_PREVIEW, 0),
-                             (p.COV_ENABLE_SEGMENTATION_MARK_PREVIEW, 0)):
-                p.configureDebugVisualizer(flag, on, physicsClientId=self._client)
-            p.resetDebugVisualizerCamera(
-                1.6, 0.0, -45.0, (-0.2, 0.0, 0.0), physicsClientId=self._client
-            )
-        self._duty = (0.0, 0.0)
-        self._steps = 0
-        self._requested_time = 0.0
-        self.reset()
+            raise UsageError("--gui needs a display (DISPLAY is not set); without one, run "
+                             "the command under a virtual display: xvfb-run -a jetbot-rt ...")
+        # the GUI's start-up chatter comes from its threads until the scene is built
+        with pybullet_chatter_filtered():
+            self._client = p.connect(p.GUI if gui else p.DIRECT)
+            if self._client < 0:
+                raise UsageError("cannot open a PyBullet " + ("window" if gui else "client"))
+            self._gui = gui
+            if gui:
+                # The side panel shows the robot's camera (each render's RGB), nothing else.
+                for flag, on in ((p.COV_ENABLE_GUI, 1), (p.COV_ENABLE_RGB_BUFFER_PREVIEW, 1),
+                                 (p.COV_ENABLE_DEPTH_BUFFER_PREVIEW, 0),
+                                 (p.COV_ENABLE_SEGMENTATION_MARK_PREVIEW, 0)):
+                    p.configureDebugVisualizer(flag, on, physicsClientId=self._client)
+                p.resetDebugVisualizerCamera(
+                    1.6, 0.0, -45.0, (-0.2, 0.0, 0.0), physicsClientId=self._client
+                )
+            self._duty = (0.0, 0.0)
+            self._steps = 0
+            self._requested_time = 0.0
+            self.reset()
 
     def reset(
         self,
@@ -437,7 +441,8 @@ class JetbotWorld:
     def close(self) -> None:
         """Disconnect the PyBullet client. Idempotent."""
         if self._client >= 0:
-            p.disconnect(physicsClientId=self._client)
+            with pybullet_chatter_filtered():
+                p.disconnect(physicsClientId=self._client)
             self._client = -1
 
     def __enter__(self) -> JetbotWorld:
