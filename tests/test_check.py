@@ -27,9 +27,18 @@ def test_all_rows_pass_and_the_motors_never_move(robot) -> None:
     assert "10 frames 96x96 RGB" in table["camera"]  # the policy's input size
     assert "mean colour R 0 G 0 B 255" in table["camera"]
     assert "input obs NHWC 96x96 float32 RGB 0-255; action output mu" in table["policy"]
+    assert "max_speed 0.1 (the default; set [actions] max_speed)" in table["policy"]
     assert "CPUExecutionProvider" in table["providers"]
     assert all(" ok " in line for line in table.values())
     assert chip.refresh().registers == before  # only reads: not one register changed
+
+
+def test_the_policy_row_states_the_max_speed_the_run_drives_at_and_why() -> None:
+    from jetbot_rt.commands.check import run_max_speed
+
+    assert run_max_speed(0.3, 0.5) == (0.3, "[actions] max_speed")
+    assert run_max_speed(None, 0.5) == (0.5, "the model's metadata")
+    assert run_max_speed(None, None) == (0.1, "the default; set [actions] max_speed")
 
 
 def test_spin_pulses_and_ends_with_everything_off(robot) -> None:

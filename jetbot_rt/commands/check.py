@@ -149,8 +149,22 @@ def describe_policy(description: dict[str, Any]) -> str:
         f"{description['path']}: input {description['input']} {description['layout']} "
         f"{width}x{height} {description['dtype']} {description['color_order']} "
         f"{description['pixel_range']}{clipped}; action output {description['action_output']}; "
-        f"max_speed {description['max_speed']}; running on {', '.join(description['providers'])}"
+        f"max_speed {description['run_max_speed']:g} ({description['max_speed_from']}); "
+        f"running on {', '.join(description['providers'])}"
     )
+
+
+def run_max_speed(configured: float | None, from_model: float | None) -> tuple[float, str]:
+    """The max_speed ``jetbot-rt run`` with this config and policy drives at, and where it
+    comes from (the same rule: ``actions.resolve_max_speed``)."""
+    from jetbot_rt.runtime.actions import resolve_max_speed
+
+    value = resolve_max_speed(configured, from_model)
+    if configured is not None:
+        return value, "[actions] max_speed"
+    if value == from_model:
+        return value, "the model's metadata"
+    return value, "the default; set [actions] max_speed"
 
 
 def check_providers() -> str:
@@ -197,6 +211,8 @@ def run(args: argparse.Namespace) -> int:
         path = resolve_policy_path(args.policy or config.policy.path)
         policy = OnnxPolicy.load(path, config.policy)
         described.update(policy.describe())
+        described["run_max_speed"], described["max_speed_from"] = run_max_speed(
+            config.actions.max_speed, policy.max_speed)
         return describe_policy(described)
 
     policy_row = _row("policy", load_policy)
