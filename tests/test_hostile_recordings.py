@@ -107,7 +107,7 @@ MALFORMED: dict[str, tuple[Callable[[Path], None], str]] = {
     # meta.json
     "meta-a-list": (edit_meta(lambda m: [m]), "must be a JSON object, got list"),
     "meta-no-format": (edit_meta(pop("format")), "recording format 'None'"),
-    "meta-version-2": (edit_meta(put("version", 2)), "version '2'"),
+    "meta-version-3": (edit_meta(put("version", 3)), "version '3'"),
     "rate-hz-0": (edit_meta(put("rate_hz", 0)), "rate_hz must be within [0.1, 1000], got 0"),
     "rate-hz-text": (edit_meta(put("rate_hz", "30")), "rate_hz must be a number, got str"),
     "rate-hz-missing": (edit_meta(pop("rate_hz")), "rate_hz must be a number, got nothing"),

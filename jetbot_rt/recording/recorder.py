@@ -1,6 +1,6 @@
 """``--record DIR``: every tick's frame and record, written off the control thread.
 
-Layout (docs/RECORDING.md, format version 1): ``meta.json`` (the run's config, policy, backend,
+Layout (docs/RECORDING.md, format version 2): ``meta.json`` (the run's config, policy, backend,
 versions), ``ticks.jsonl`` (one record per tick as telemetry writes it, plus ``frame``, and the
 events), ``frames.mkv`` (the frames as the policy received them, HuffYUV: lossless, so a replay
 reproduces ``mu`` to round-off) and, once the run ends, ``summary.json``.
@@ -55,7 +55,8 @@ from jetbot_rt.recording.writer_process import (
 from jetbot_rt.runtime.loop import TickResult
 
 FORMAT = "jetbot_rt.recording.reader"
-VERSION = 1
+VERSION = 2
+"""2: tick records may carry ``driver``, ``human`` and ``policy_mu`` (``jetbot-rt drive``)."""
 F_SETPIPE_SZ = 1031  # fcntl: a pipe's capacity (Linux)
 START_TIMEOUT = 20.0
 """Seconds the writer process may take to start (import OpenCV, open the video file)."""
