@@ -238,6 +238,16 @@ def test_help_lists_the_tasks_and_shows_defaults(capsys):
         assert f"{name} --" in " ".join(out.split())
     text = " ".join(train_main(capsys, "train", "--help")[1].split())
     assert "(default 0.99)" in text and "seek: 300000" in text  # gamma, seek's timesteps
+    assert "--timesteps TOTAL_TIMESTEPS" in text and "--total-timesteps" not in text, \
+        "one name in --help and the docs"
+    import argparse
+
+    from jetbot_rt.train.flags import add_ppo_arguments
+
+    parser = argparse.ArgumentParser()
+    add_ppo_arguments(parser)
+    for flag in ("--timesteps", "--total-timesteps"):  # the field's own name still works
+        assert parser.parse_args([flag, "500"]).total_timesteps == 500
     text = " ".join(train_main(capsys, "eval", "--help")[1].split())
     assert "--ablate" in text and "(default: 10000)" in text
 

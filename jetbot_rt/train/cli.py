@@ -234,8 +234,7 @@ def _eval(args: argparse.Namespace, argv: list[str]) -> int:
               f"mean return {result['mean_return']:.4g}"
               + (f", mean final distance {result['mean_final_distance']:.3f} m"
                  if result["mean_final_distance"] is not None else "")
-              + (f" (success: final distance < {result['success_distance']} m)"
-                 if result["success_distance"] is not None else ""))
+              + (f" (success: {result['success_rule']})" if result["success_rule"] else ""))
     return EXIT_OK
 
 

@@ -143,6 +143,19 @@ def _run_one(job: tuple[str, str, Config, int, str | None, str | None]) -> dict:
     return run_episode(_WORKER["env"], _WORKER["policy"], seed, video_dir=video_dir)
 
 
+def success_rule(spec: Any) -> str | None:
+    """What ``outcome`` counts as a success, in words, for a goal task (``success_distance``
+    and, where the task sets them, ``stop_speed`` and ``max_block_shift``); None for others."""
+    if spec.success_distance is None:
+        return None
+    parts = [f"final distance < {spec.success_distance:g} m"]
+    if getattr(spec, "stop_speed", None) is not None:
+        parts.append(f"slower than {spec.stop_speed:g} m/s")
+    if getattr(spec, "max_block_shift", None) is not None:
+        parts.append(f"the block pushed less than {spec.max_block_shift:g} m")
+    return " and ".join(parts)
+
+
 def _stat(function: Any, values: list[float | None]) -> float | None:
     """``function`` of ``values``, None for a task that reports no such value."""
     return None if any(v is None for v in values) else float(function(values))
@@ -213,6 +226,7 @@ def evaluate(
         "mean_final_distance": _stat(np.mean, [r["final_distance"] for r in results]),
         "max_final_distance": _stat(np.max, [r["final_distance"] for r in results]),
         "success_distance": spec.success_distance,
+        "success_rule": success_rule(spec),
         "episode_steps": spec.episode_steps,
         "seed": seed,
         "max_speed": action_pipeline_of(

@@ -28,7 +28,9 @@ from jetbot_rt.train.hyperparams import (
 
 SKIPPED = ("task", "config", "model")
 """Fields with flags of their own: ``--task``, ``--config``; ``model`` as ``--model-*``."""
-ALIASES = {"total_timesteps": ("--timesteps",)}
+FLAG_NAMES = {"total_timesteps": "--timesteps"}
+"""Fields whose flag is not their name: one name in --help and the docs (the field's own,
+``--total-timesteps``, is still accepted, unlisted)."""
 OPTIONAL_VALUE = {"ray": {"nargs": "?", "const": "local", "metavar": "ADDRESS"}}
 """Flags whose value may be left out (``--ray`` alone: Ray on this machine)."""
 
@@ -112,8 +114,12 @@ def add_ppo_arguments(parser: argparse.ArgumentParser) -> None:
                  docs.get(spec.name, ""), {})
             continue
         per_task = {t: d[spec.name] for t, d in TASK_DEFAULTS.items() if spec.name in d}
-        flags = ["--" + spec.name.replace("_", "-"), *ALIASES.get(spec.name, ())]
-        _add(group, flags, spec.name, spec, docs.get(spec.name, ""), per_task)
+        own = "--" + spec.name.replace("_", "-")
+        _add(group, [FLAG_NAMES.get(spec.name, own)], spec.name, spec, docs.get(spec.name, ""),
+             per_task)
+        if spec.name in FLAG_NAMES:
+            group.add_argument(own, dest=spec.name, type=positive_int,
+                               default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     dagger_group = parser.add_argument_group(
         "DAgger options (--algo dagger; it shares --out, --seed, --resume, --init, --num-envs, "
         "--workers, --learning-rate, --device, --torch-threads, --progress with PPO, each with "
