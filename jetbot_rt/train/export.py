@@ -311,7 +311,9 @@ def parity_error(model: nn.Module, onnx_bytes: bytes, batch: int = 3, seed: int 
         raise ExportError(f"export parity check failed: onnxruntime cannot run the graph on "
                           f"a batch of {batch} images (a batch size fixed in the network, such "
                           f"as reshape(2, -1)? {first_line(exc)})") from None
-    with torch.no_grad():
+    # TF32 off: a GPU's default TF32 convolutions differ from float32 by ~3e-4 (measured on
+    # an H200), which would refuse a correct graph trained there.
+    with torch.no_grad(), torch.backends.cudnn.flags(enabled=True, allow_tf32=False):
         result = model(torch.from_numpy(images).to(_device(model)))
     want = [t.detach().cpu().numpy() for t in _outputs(result)]
     if [g.shape for g in got] != [w.shape for w in want]:
