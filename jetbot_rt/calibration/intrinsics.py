@@ -147,7 +147,7 @@ def find_board(image: np.ndarray, inner: tuple[int, int] = BOARD_INNER) -> np.nd
     the whole board is not seen. ``findChessboardCornersSB``: a localised fit of each corner,
     more accurate than the classic detector and robust to the lens's curvature."""
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_NORMALIZE_IMAGE
+    flags = cv2.CALIB_CB_NORMALIZE_IMAGE
     found, corners = cv2.findChessboardCornersSB(grey, inner, flags=flags)
     if not found or corners is None or len(corners) != inner[0] * inner[1]:
         return None

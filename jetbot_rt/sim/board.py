@@ -51,9 +51,10 @@ def board_views(count: int = 15) -> list[BoardPose]:
     for i in range(count):
         sx, sy = spots[i % len(spots)]
         ahead = float(rng.uniform(0.33, 0.45))
-        # the fisheye's frame reaches ~48 degrees to the sides and ~26 up and down
-        right = sx * ahead * math.tan(math.radians(34)) - sx * 0.04
-        up = sy * ahead * math.tan(math.radians(12))
+        # out to the frame's edges (the datasheet lens: ~50 degrees to the sides, ~28 up and
+        # down), where the distortion is: some of these views leave the frame and are dropped
+        right = sx * ahead * math.tan(math.radians(40)) - sx * 0.04
+        up = sy * ahead * math.tan(math.radians(16))
         views.append(BoardPose(ahead, right, up, float(rng.uniform(-30, 30)) - 15 * sx,
                                float(rng.uniform(-25, 25)), float(rng.uniform(-15, 15))))
     return views
