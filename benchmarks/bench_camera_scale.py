@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from versions import stamp
 
 CAPTURE = (1280, 720)
 PATTERNS = ("smpte", "checkers-1", "checkers-2", "checkers-4", "checkers-8", "zone-plate",
@@ -90,7 +91,7 @@ def main() -> None:
     report = {"size": size, "capture": list(CAPTURE), "patterns": list(PATTERNS),
               "loadavg_1min": round(os.getloadavg()[0], 2), "methods": dict(ranked)}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "camera_scale.json").write_text(json.dumps(report, indent=2) + "\n")
+    (args.out / "camera_scale.json").write_text(json.dumps(stamp(report), indent=2) + "\n")
     lines = [
         "# Camera scaling: GStreamer videoscale vs an area average", "",
         f"1280x720 `videotestsrc` frames ({len(PATTERNS)} patterns: {', '.join(PATTERNS)}) "

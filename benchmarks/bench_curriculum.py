@@ -57,6 +57,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from versions import stamp
+
 REPO = Path(__file__).resolve().parent.parent
 ARMS = ("none", "curriculum")
 STOP_WAIT_S = 60.0
@@ -505,7 +507,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     out = results_dir()
     out.mkdir(parents=True, exist_ok=True)
-    (out / "curriculum.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / "curriculum.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     (out / "curriculum.md").write_text(markdown(result))
     for arm in arms:
         for name, target in (("metrics.csv", f"curriculum_{arm.name}_metrics.csv"),):

@@ -24,6 +24,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from versions import stamp
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import MotorHatDrive, WaveshareDrive
@@ -168,7 +169,7 @@ def main() -> None:
         "camera": [camera_frame_age(args.seconds, hz) for hz in (30.0, 30.0, 27.0)],
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "hardware.json").write_text(json.dumps(data, indent=2) + "\n")
+    (RESULTS / "hardware.json").write_text(json.dumps(stamp(data), indent=2) + "\n")
     (RESULTS / "hardware.md").write_text(write_markdown(data))
     print(write_markdown(data))
 

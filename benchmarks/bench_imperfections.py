@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from versions import stamp
 
 from jetbot_rt.config.sections import from_dict
 from jetbot_rt.train.env import JetbotEnv
@@ -51,7 +52,7 @@ def main() -> None:
         "load_avg_1min": os.getloadavg()[0],
     }
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "imperfections.json").write_text(json.dumps(result, indent=2) + "\n")
+    (RESULTS / "imperfections.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     lines = ["| case | env steps/s | vs ideal |", "| --- | --- | --- |"]
     lines += [f"| {k} | {result['steps_per_s'][k]} | {result['ratio_to_ideal'][k]} |"
               for k in CASES]

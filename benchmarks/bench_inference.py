@@ -30,6 +30,7 @@ from onnx import numpy_helper, shape_inference  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from policy_models import rl_games_actor_critic  # noqa: E402
+from versions import stamp  # noqa: E402
 
 from jetbot_rt.config.sections import PolicyConfig  # noqa: E402
 from jetbot_rt.runtime.policy import OnnxPolicy, bundled_policy_path  # noqa: E402
@@ -128,7 +129,7 @@ def main() -> int:
             "loadavg_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
         }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "inference.json").write_text(json.dumps(results, indent=2) + "\n")
+    (args.out / "inference.json").write_text(json.dumps(stamp(results), indent=2) + "\n")
     rows = [
         "| model | input | params | MMAC | load | median | p99 | here GFLOP/s | Nano A57 (est.) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",

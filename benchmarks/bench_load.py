@@ -17,6 +17,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from versions import stamp
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 CASE = "tests/test_fault_load.py::test_two_busy_cores_the_loop_keeps_its_schedule_or_stops_safely"
@@ -41,7 +43,7 @@ def main() -> None:
     args = parser.parse_args()
     rows = [run_once(args.seconds) for _ in range(args.runs)]
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "load.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (RESULTS / "load.json").write_text(json.dumps(stamp(rows), indent=1) + "\n")
     keys = ["load_before", "exit_code", "ticks_under_load", "overruns", "tick_ms_p99",
             "tick_ms_max", "late_ms_max", "smallest_gap_ms"]
     lines = [f"# Two busy cores for {args.seconds:.0f} s, real backend at 30 Hz", "",

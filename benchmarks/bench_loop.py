@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import policy_models
+from versions import stamp
 
 from jetbot_rt.recording.telemetry import Telemetry
 from jetbot_rt.runtime.actions import ActionPipeline
@@ -184,7 +185,7 @@ def main() -> None:
             "watchdog": watchdog_latency(policy, args.trials, 30.0, workdir),
         }
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "loop.json").write_text(json.dumps(results, indent=2) + "\n")
+    (RESULTS / "loop.json").write_text(json.dumps(stamp(results), indent=2) + "\n")
     lines = ["| measure | p50 | p99 | max | target |", "|---|---|---|---|---|"]
     for run, base in zip(results["jitter"], results["sleep_baseline"], strict=True):
         j, b = run["start_jitter_ms"], base["start_jitter_ms"]

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from versions import stamp
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PAGE = ("/stream.mjpg?view=prepared", "/stream.mjpg?view=raw", "/events")
@@ -148,7 +149,7 @@ def main() -> None:
               "rate_hz": 30, "jpeg_encode_224_ms": encode, "nano_factor": NANO_FACTOR,
               "cases": cases}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "monitor.json").write_text(json.dumps(result, indent=1) + "\n")
+    (RESULTS / "monitor.json").write_text(json.dumps(stamp(result), indent=1) + "\n")
     base = cases[0]["cpu_percent"]
     lines = [
         "# The monitor's cost to the loop (benchmarks/bench_monitor.py)", "",

@@ -28,6 +28,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from versions import stamp
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -136,7 +137,7 @@ def main() -> None:
     }
     name = "ray" + (f"-{args.tag}" if args.tag else "")
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (RESULTS / f"{name}.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     write_markdown(result, RESULTS / f"{name}.md")
     print((RESULTS / f"{name}.md").read_text())
 

@@ -30,6 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from runner import RuntimeProcess
+from versions import stamp
 
 from jetbot_rt.runtime.policy import bundled_policy_path
 
@@ -154,7 +155,7 @@ def main() -> None:
     summary["late_p99_ratio"] = round(jitter["with"] / jitter["without"], 3) \
         if jitter["without"] else None
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "record.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (RESULTS / "record.json").write_text(json.dumps(stamp(summary), indent=1) + "\n")
     cpu = summary["cpu_s_per_min"]
     extra_cpu = cpu["with"] - cpu["without"]
     gb_per_hour = summary["disk_mb_per_min"] * 60 / 1e3

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from versions import stamp
 
 from jetbot_rt.sim.config import SimConfig
 from jetbot_rt.sim.world import JetbotWorld
@@ -109,7 +110,7 @@ def main() -> None:
                                  fy=448 // size * 0.5 or 1, interpolation=cv2.INTER_NEAREST))
     result["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "seam.json").write_text(json.dumps(result, indent=2) + "\n")
+    (args.out / "seam.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     height = max(p.shape[0] for p in panels)
     strip = np.hstack([np.pad(p, ((0, height - p.shape[0]), (0, 8), (0, 0)),
                               constant_values=255) for p in panels])

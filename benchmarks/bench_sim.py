@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from versions import stamp
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.sim.config import SimConfig
@@ -170,7 +171,7 @@ def main() -> None:
     result["machine"]["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     name = f"sim-{args.tag}" if args.tag else "sim"
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (args.out / f"{name}.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     (args.out / f"{name}.md").write_text(markdown(result))
     print(markdown(result))
 

@@ -30,6 +30,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
 from test_watchdog_dump import churning_process, watchdog_ends  # noqa: E402
+from versions import stamp  # noqa: E402
 
 
 def trial(way: str, seed: int) -> dict:
@@ -64,7 +65,7 @@ def main() -> None:
                           "python": platform.python_version()},
               "summary": summary, "trials": rows}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "stack_dump.json").write_text(json.dumps(report, indent=1) + "\n")
+    (RESULTS / "stack_dump.json").write_text(json.dumps(stamp(report), indent=1) + "\n")
     lines = [
         "# A stopped process's stack dump when systemd's watchdog resumes it", "",
         f"`{command}` on {started}, {os.cpu_count()} cores, Linux {platform.release()}, "

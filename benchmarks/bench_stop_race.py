@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 from test_real_backend_e2e import Robot  # noqa: E402
+from versions import stamp  # noqa: E402
 
 
 def trial() -> tuple[int, int]:
@@ -60,7 +61,7 @@ def main() -> None:
         "outcomes": {f"stop {s}, runtime {r}": n for (s, r), n in sorted(pairs.items())},
     }
     out = ROOT / "benchmarks" / "results"
-    (out / "stop_race.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / "stop_race.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     lines = ["# A reached runtime's exit after `jetbot-rt stop`\n",
              f"`{result['command']}` on {result['date']}, {result['machine']}, "
              f"{result['wall_s']} s, load {load_before[0]:.2f} -> {result['load_after'][0]:.2f}.\n",

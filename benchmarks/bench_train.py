@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from versions import stamp
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -208,7 +210,7 @@ def main() -> None:
         result["eval"] = evaluate(None, episodes=args.episodes, num_workers=args.num_envs)
         result["eval"]["policy"] = "jetbot_rt/policies/forward.onnx"
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (RESULTS / f"{name}.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     write_markdown(result, RESULTS / f"{name}.md")
     print(json.dumps(result, indent=2))
 

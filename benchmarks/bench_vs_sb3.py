@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from versions import stamp
 
 RESULTS = Path(__file__).resolve().parent / "results"
 JETBOT_TRAIN = shutil.which("jetbot-train") or str(Path(sys.executable).parent / "jetbot-train")
@@ -179,7 +180,7 @@ def main() -> None:
     }
     suffix = f"-{args.tag}" if args.tag else ""
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"vs_sb3{suffix}.json").write_text(json.dumps(report, indent=2) + "\n")
+    (RESULTS / f"vs_sb3{suffix}.json").write_text(json.dumps(stamp(report), indent=2) + "\n")
     lines = [f"# {args.task}: jetbot-train PPO vs Stable-Baselines3 PPO, {args.budget_s:g} s "
              f"of training each, {args.num_envs} env processes", "",
              f"`{report['command']}` ({report['cpus']} CPUs, load {report['load_before']} before, "

@@ -40,6 +40,8 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+from versions import stamp
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 UNIT = ROOT / "jetbot_rt" / "data" / "jetbot-rt.service"
@@ -198,7 +200,7 @@ def write(chunks: list[dict], args: argparse.Namespace, started: str, wall_s: fl
         report.update({k: measured[k] for k in ("command", "date", "wall_s", "machine")})
         command, started = report["command"], report["date"]
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "watchdog_trips.json").write_text(json.dumps(report, indent=1) + "\n")
+    (RESULTS / "watchdog_trips.json").write_text(json.dumps(stamp(report), indent=1) + "\n")
     keys = list(arms[0])
     lines = [
         "# Watchdog trips with both cores busy: nice 0 against the unit's Nice=", "",

@@ -15,6 +15,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from versions import stamp
+
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 
@@ -85,7 +87,7 @@ def main() -> None:
               "seconds": args.seconds, "trials": args.trials,
               "loadavg_after": [round(x, 2) for x in load], "runs": runs, "best": best}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "loop_ab.json").write_text(json.dumps(result, indent=2) + "\n")
+    (RESULTS / "loop_ab.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     lines = [f"Loop benchmark, baseline {args.baseline} vs {head}, alternating, {args.rounds} "
              f"rounds (best of rounds); load average after: {result['loadavg_after']}", "",
              "| measure | baseline | new | new/baseline |", "|---|---|---|---|"]

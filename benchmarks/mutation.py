@@ -45,6 +45,8 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from versions import stamp
+
 try:
     import cosmic_ray
     import cosmic_ray.plugins
@@ -680,7 +682,7 @@ def report(mutants: list[Mutant], population: dict[str, int], args: argparse.Nam
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1) + "\n")
+    out.write_text(json.dumps(stamp(result), indent=1) + "\n")
     lines = [
         "# Mutation score (benchmarks/mutation.py)", "",
         f"{result['tool']}; {sum(v['sampled'] for v in per_module.values())} mutants sampled "

@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from versions import stamp
+
 import jetbot_rt.train  # noqa: F401  (sets the thread wait policy before torch loads)
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -165,7 +167,7 @@ def main() -> None:
     }
     name = f"profile_ppo-{args.tag}" if args.tag else "profile_ppo"
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (RESULTS / f"{name}.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     print(json.dumps(result, indent=2))
 
 

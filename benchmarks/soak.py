@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from versions import stamp
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -91,7 +92,7 @@ def main() -> None:
         "stderr": stderr.strip()[-500:],
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+    Path(args.out).write_text(json.dumps(stamp(result), indent=2) + "\n")
     print(json.dumps(result, indent=2))
     print(stdout)
 

@@ -32,6 +32,7 @@ from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
 from jetbot_rt.train.hyperparams import OptionError
 from jetbot_rt.train.out_dir import own_directory
 from jetbot_rt.train.vec_env import workers_ignore_the_working_directory
+from jetbot_rt.train.versions import versions
 from jetbot_rt.train.video import EpisodeRecording, timed
 
 ABLATIONS = ("blank", "bgr", "pixel-range", "constant-forward")
@@ -227,6 +228,7 @@ def evaluate(
         "max_final_distance": _stat(np.max, [r["final_distance"] for r in results]),
         "success_distance": spec.success_distance,
         "success_rule": success_rule(spec),
+        "versions": versions(),
         "episode_steps": spec.episode_steps,
         "seed": seed,
         "max_speed": action_pipeline_of(

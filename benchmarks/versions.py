@@ -1,0 +1,18 @@
+"""``stamp(result)``: a benchmark's results with the versions it ran with (python, numpy,
+torch, onnxruntime, opencv, pybullet, gymnasium, jetbot_rt, the git commit), for each script
+to call where it writes its JSON: ``json.dumps(stamp(result))``. The same record as
+``jetbot-train eval --json``'s ``versions`` (jetbot_rt/train/versions.py)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from jetbot_rt.train.versions import versions
+
+
+def stamp(result: Any) -> Any:
+    """``result`` (a dict) with ``versions`` added; a list of rows becomes
+    ``{"rows": result, "versions": ...}``."""
+    if isinstance(result, dict):
+        return {**result, "versions": versions()}
+    return {"rows": result, "versions": versions()}
