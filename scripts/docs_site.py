@@ -262,13 +262,21 @@ def cli_reference(prog: str) -> str:
 
 
 def reference_pages() -> dict[str, str]:
-    """``reference/...md`` -> its Markdown; the parsers format usage at a fixed width."""
+    """``reference/...md`` -> its Markdown; the parsers format usage at a fixed width (argparse
+    reads ``COLUMNS``), whatever the terminal that builds them."""
+    saved = os.environ.get("COLUMNS")
     os.environ["COLUMNS"] = "80"
-    return {
-        "reference/config.md": config_reference(),
-        "reference/jetbot-rt.md": cli_reference("jetbot-rt"),
-        "reference/jetbot-train.md": cli_reference("jetbot-train"),
-    }
+    try:
+        return {
+            "reference/config.md": config_reference(),
+            "reference/jetbot-rt.md": cli_reference("jetbot-rt"),
+            "reference/jetbot-train.md": cli_reference("jetbot-train"),
+        }
+    finally:
+        if saved is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = saved
 
 
 # ---- links out of docs/ ------------------------------------------------------------------

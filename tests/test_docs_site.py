@@ -105,3 +105,12 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path, monkeypatch):
         assert (site / page).is_file(), page
     assert "rate_hz" in (site / "reference/config/index.html").read_text(encoding="utf-8")
     assert (site / "benchmarks/results/forward_blind/index.html").is_file()  # copied in
+
+
+def test_the_readme_is_a_front_page_whose_first_commands_install_and_run_then_test():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 200
+    blocks = re.findall(r"^```sh\n(.*?)\n```", text, re.MULTILINE | re.DOTALL)
+    assert blocks[0].startswith("python3 -m venv .venv && ") and "jetbot-rt run --backend sim" \
+        in blocks[0]
+    assert blocks[1].startswith("apt-get update && ") and blocks[1].endswith("pytest -q -n 2")
