@@ -63,11 +63,18 @@ def apply_colors(client: int, room: int, block: int | None, sim: SimConfig) -> N
 
 
 def light_kwargs(sim: SimConfig) -> dict[str, Any]:
-    """``getCameraImage`` keyword arguments for the light."""
+    """``getCameraImage`` keyword arguments for the light: its direction, strength and
+    colour (``[sim] light_color``, passed only when not white)."""
     k = sim.light_intensity
-    return {
+    out: dict[str, Any] = {
         "lightDirection": list(sim.light_direction),
         "lightAmbientCoeff": AMBIENT * k,
         "lightDiffuseCoeff": DIFFUSE * k,
         "lightSpecularCoeff": SPECULAR * k,
+        # TinyRenderer's shadow map darkens almost nothing (0.14 grey levels measured over a
+        # frame with a 40 cm box in it): sim/looks.py bakes the shadows into the floor instead
+        "shadow": 0,
     }
+    if [float(c) for c in sim.light_color] != [1.0, 1.0, 1.0]:
+        out["lightColor"] = [float(c) for c in sim.light_color]
+    return out

@@ -21,7 +21,8 @@ from typing import Any, List, Optional
 
 from jetbot_rt.config.schema import check, low_high, meta, one_of, pair, rgb, within
 
-FLOOR_TEXTURES = ("checker", "plain")
+FLOOR_TEXTURES = ("checker", "plain", "wood", "carpet", "tiles", "rug", "concrete")
+WALL_TEXTURES = ("flat", "paint", "wallpaper", "panel")
 LENSES = ("pinhole", "fisheye")
 
 DRAWS = ("value", "factor", "offset", "color", "custom")
@@ -137,7 +138,8 @@ class SimKnobs:
     ))
     """The floor's light tiles; dark tiles are this times 0.636."""
     floor_texture: str = field(default="checker", metadata=one_of(FLOOR_TEXTURES))
-    """"checker" (0.25 m tiles) or "plain" (every tile floor_color)."""
+    """"checker" (0.25 m tiles) or "plain" (every tile floor_color); or a procedural texture
+    in floor_color from ``look_seed``: "wood", "carpet", "tiles", "rug", "concrete"."""
     wall_color: Optional[List[float]] = field(default=None, metadata=meta(
         check(
             lambda v: len(v) in (3, 12) and all(0 <= x <= 1 for x in v),
@@ -215,7 +217,6 @@ class SimKnobs:
     lens_k4: float = field(default=0.0, metadata=within(-1, 1))
 
 
-
 @dataclass
 class SimFaults:
     """Fault injection, for tests and drills only: the sim's camera fails on purpose. Read
@@ -231,7 +232,46 @@ class SimFaults:
 
 
 @dataclass
-class SimConfig(SimFaults, SimKnobs):
+class LookKnobs:
+    """The room's appearance families and the camera's own look (``sim/looks.py``,
+    ``sim/textures.py``, ``sim/clutter.py``, ``sim/camera_look.py``; docs/SIM.md, "Appearance
+    families"). All off by default: the room and the frames are as without them."""
+
+    wall_texture: str = field(default="flat", metadata=one_of(WALL_TEXTURES))
+    """"flat" (one colour), "paint" (a roller's mottling), "wallpaper" (stripes or a small
+    repeat) or "panel" (vertical boards), in each wall's ``wall_color``."""
+    skirting_color: Optional[List[float]] = field(default=None, metadata=rgb())
+    """[r, g, b]: a 6 cm skirting board at the bottom of every wall; default none."""
+    clutter: int = field(default=0, metadata=within(0, 12))
+    """Furniture-like boxes and cylinders along the walls, clear of the task's pieces."""
+    lamps: int = field(default=0, metadata=within(0, 4))
+    """Warm light pools (2400-3500 K) painted on the floor."""
+    window_light: float = field(default=0.0, metadata=within(0, 2))
+    """A window's daylight patch on the floor: its strength (1: 60 % brighter)."""
+    light_color: List[float] = field(default_factory=lambda: [1.0, 1.0, 1.0],
+                                     metadata=rgb())
+    """The renderer light's colour (a warm lamp, cool daylight)."""
+    shadows: bool = False
+    """The renderer's light casts shadows (about 40 % more render time)."""
+    look_seed: int = field(default=0, metadata=within(0, 2**31 - 1))
+    """Seeds the textures' details (planks, tiles, a rug's pattern), the lamps and window,
+    and the clutter's pieces and places."""
+    exposure: float = field(default=1.0, metadata=within(0.05, 8))
+    """The camera's gain on linear light (0.5: a stop darker)."""
+    white_balance: List[float] = field(default_factory=lambda: [1.0, 1.0, 1.0], metadata=check(
+        lambda v: len(v) == 3 and all(0.2 <= x <= 5 for x in v), "[r, g, b] gains in 0.2..5"))
+    """The camera's gain per channel on linear light."""
+    gain_noise: float = field(default=0.0, metadata=within(0, 0.5))
+    """Shot noise of the light times the gain: its standard deviation on linear light at full
+    scale and exposure 1 (it grows with the square roots of the signal and the exposure)."""
+    vignetting: float = field(default=0.0, metadata=within(0, 1))
+    """How much darker the frame's corners are than its centre (0.3: 30 %)."""
+    motion_blur: float = field(default=0.0, metadata=within(0, 0.2, " s"))
+    """The shutter time over which the robot's turning and driving smear the frame."""
+
+
+@dataclass
+class SimConfig(SimFaults, LookKnobs, SimKnobs):
     """The ``[sim]`` section: the user's knobs, then the fault injection keys."""
 
 
@@ -271,6 +311,74 @@ class RandomizeOwn:
     """Factor on each channel of each colour apart: a shift of hue."""
 
 
+TRAINING_FLOORS = ("checker", "plain", "wood", "tiles", "concrete")
+"""The floor families a training draw uses by default; carpet and rug are held out."""
+HELDOUT_FLOOR_HSV = (28.0, 40.0, 0.4, 0.6, 0.35, 0.55, 200.0, 230.0, 0.25, 0.5, 0.3, 0.5)
+"""Two colour boxes no training floor is drawn in (hue degrees, saturation, value: low, high
+each): a mid oak brown and a dark blue-grey."""
+
+
+def _families(choices: tuple[str, ...]) -> dict[str, Any]:
+    return check(lambda v: len(v) > 0 and all(x in choices for x in v),
+                 "a non-empty list of " + ", ".join(repr(c) for c in choices))
+
+
+def _hsv_boxes(v: List[float]) -> bool:
+    boxes = [v[i:i + 6] for i in range(0, len(v), 6)]
+    return len(v) % 6 == 0 and all(
+        0 <= h0 <= h1 <= 360 and 0 <= s0 <= s1 <= 1 and 0 <= v0 <= v1 <= 1
+        for h0, h1, s0, s1, v0, v1 in boxes)
+
+
+@dataclass
+class RandomizeLook:
+    """Per-episode draws of the appearance families (``[sim]``'s ``LookKnobs``, the floor's
+    family and colour, the walls' colours); only with ``appearance = true``, after every
+    other draw, so that without it every seed draws what it drew before."""
+
+    appearance: bool = False
+    """Draw the appearance families per episode (docs/SIM.md, "Appearance families")."""
+    floor_families: List[str] = field(default_factory=lambda: list(TRAINING_FLOORS),
+                                      metadata=_families(FLOOR_TEXTURES))
+    """The floor families drawn, each as likely (the rest are held out for evaluation)."""
+    heldout_floor_hsv: List[float] = field(default_factory=lambda: list(HELDOUT_FLOOR_HSV),
+                                           metadata=check(_hsv_boxes, (
+                                               "boxes of 6 numbers: hue low, high (degrees), "
+                                               "saturation low, high, value low, high (0..1)")))
+    """Colour boxes no floor is drawn in (held out for evaluation)."""
+    floor_saturation: List[float] = field(default_factory=lambda: [0.0, 0.5],
+                                          metadata=low_high(0, 1))
+    """A floor's colour: any hue, this saturation (near the goal's red at most 0.31), ..."""
+    floor_value: List[float] = field(default_factory=lambda: [0.15, 0.9],
+                                     metadata=low_high(0, 1))
+    """... and this value (HSV)."""
+    wall_textures: List[str] = field(default_factory=lambda: list(WALL_TEXTURES),
+                                     metadata=_families(WALL_TEXTURES))
+    home_walls: float = field(default=0.7, metadata=within(0.0, 1.0))
+    """Probability that the four walls are one home colour (pale, any hue) instead of the
+    heading colours' tinted draw."""
+    skirting: float = field(default=0.7, metadata=within(0.0, 1.0))
+    """Probability of a skirting board (white, wood or grey)."""
+    clutter: List[float] = field(default_factory=lambda: [0, 6], metadata=low_high(0, 12))
+    lamps: List[float] = field(default_factory=lambda: [0, 3], metadata=low_high(0, 4))
+    window_light: List[float] = field(default_factory=lambda: [0.0, 1.0],
+                                      metadata=low_high(0, 2))
+    light_temperature: List[float] = field(default_factory=lambda: [2700.0, 6500.0],
+                                           metadata=low_high(1000, 12000, " K"))
+    """The renderer light's colour: a black body at this temperature."""
+    shadows: float = field(default=0.5, metadata=within(0.0, 1.0))
+    """Probability that the light casts shadows."""
+    exposure: List[float] = field(default_factory=lambda: [0.6, 1.6], metadata=low_high(0.05, 8))
+    """Drawn log-uniformly."""
+    white_balance: List[float] = field(default_factory=lambda: [0.85, 1.15],
+                                       metadata=low_high(0.2, 5))
+    """Red and blue gains (green 1)."""
+    gain_noise: List[float] = field(default_factory=lambda: [0.0, 0.03], metadata=low_high(0, 0.5))
+    vignetting: List[float] = field(default_factory=lambda: [0.0, 0.5], metadata=low_high(0, 1))
+    motion_blur: List[float] = field(default_factory=lambda: [0.0, 0.02],
+                                     metadata=low_high(0, 0.2, " s"))
+
+
 def _range_field(spec: Randomized) -> tuple[Any, Any]:
     hint = Optional[List[float]] if spec.optional else List[float]
     return hint, field(default_factory=lambda: list(spec.default),
@@ -280,7 +388,7 @@ def _range_field(spec: Randomized) -> tuple[Any, Any]:
 RandomizeConfig = dataclasses.make_dataclass(
     "RandomizeConfig",
     [(spec.key or name, *_range_field(spec)) for name, spec in randomized_knobs()],
-    bases=(RandomizeOwn,),
+    bases=(RandomizeOwn, RandomizeLook),
     namespace={"__doc__": RandomizeOwn.__doc__, "__module__": __name__},
 )
 """``[randomize]``: ``RandomizeOwn``'s keys and one ``[low, high]`` range per randomized knob."""

@@ -18,6 +18,7 @@ from jetbot_rt.config.schema import set_value
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.appearance import wall_colors
 from jetbot_rt.sim.config import RandomizeConfig, Randomized, SimConfig, randomized_knobs
+from jetbot_rt.sim.look_draws import sample_looks
 
 DRAWN = (*(name for name, _ in randomized_knobs()), "seed", "floor_texture")
 """The [sim] keys a draw sets (``seed`` seeds the episode's image noise)."""
@@ -88,6 +89,8 @@ def sample(base: SimConfig, ranges: RandomizeConfig, rng: np.random.Generator) -
     for name, spec in randomized_knobs():
         if spec.late:
             drawn[name] = draw(name, spec)
+    if r.appearance:  # the families, after everything: without them a seed draws as before
+        drawn.update(sample_looks(base, r, rng))
     out = dataclasses.replace(base)
     for key, value in drawn.items():  # a draw must be a valid [sim] table (replayable)
         try:

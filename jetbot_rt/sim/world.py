@@ -21,7 +21,8 @@ import numpy as np
 
 from jetbot_rt.errors import UsageError
 from jetbot_rt.hal.base import DEFAULT_FRAME_SIZE, finite_pair
-from jetbot_rt.sim import appearance
+from jetbot_rt.sim import appearance, looks
+from jetbot_rt.sim.camera_look import CameraLook
 from jetbot_rt.sim.camera_model import CAMERA_ASPECT, FrameQueue, SensorEffects, mount_delta
 from jetbot_rt.sim.lens import lens_warp
 from jetbot_rt.sim.motor import WheelMotors
@@ -156,13 +157,15 @@ class JetbotWorld:
         p.setGravity(0, 0, GRAVITY, physicsClientId=c)
         p.setTimeStep(self._dt_physics, physicsClientId=c)
         p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=c)
-        self._room = p.loadURDF(_asset("room.urdf"), useFixedBase=True, physicsClientId=c)
+        self._room = p.loadURDF(_asset(looks.room_urdf(room_sim)), useFixedBase=True,
+                                physicsClientId=c)
         x, y, yaw = scene.robot_pose
         self._robot = p.loadURDF(
             _asset("jetbot.urdf"), (x, y, WHEEL_RADIUS), p.getQuaternionFromEuler((0, 0, yaw)),
             physicsClientId=c,
         )
-        appearance.apply_colors(c, self._room, None, room_sim)
+        if not looks.textured(room_sim):
+            appearance.apply_colors(c, self._room, None, room_sim)
         self._pieces: dict[str, int] = {}
         self._starts: dict[str, tuple[float, float]] = {}
         self._bodies: list[int] = []
@@ -173,6 +176,7 @@ class JetbotWorld:
                 self._pieces[piece.name] = body
                 self._starts[piece.name] = self._start_xy(piece, body)
         self._scene = scene
+        self._bodies.extend(looks.dress(c, self._room, scene, room_sim))  # textures, clutter
         info = p.getDynamicsInfo(self._robot, -1, physicsClientId=c)
         self._com_to_link = p.invertTransform(info[3], info[4], physicsClientId=c)
         # Free-wheeling until the first step: PyBullet's default joint motor would brake.
@@ -186,6 +190,7 @@ class JetbotWorld:
         self._requested_time = 0.0
         self._motors = WheelMotors(self._sim)
         self._effects = SensorEffects(self._sim)
+        self._camera_look = CameraLook(self._sim, (self._width, self._height))
         self._frames = FrameQueue(round(self._sim.camera_latency * self._sim.physics_hz))
         self._delivered: tuple[int, np.ndarray] | None = None
         # a fisheye renders a wider pinhole and warps it to the frame (sim/lens.py)
@@ -302,7 +307,7 @@ class JetbotWorld:
         width, height = self._lens.render_size if self._lens else self._render_size
         _, _, rgba, _, _ = p.getCameraImage(
             width, height, view, self._projection,
-            shadow=0, renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
+            renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
             physicsClientId=c, **self._light,
         )
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3]
@@ -331,7 +336,10 @@ class JetbotWorld:
         if self._delivered is not None and self._delivered[0] == self._steps:
             return self._delivered[1]
         raw = self._frames.frame_at(self._steps) if self._frames.delay else None
-        image = self._effects.apply(raw if raw is not None else self.render())
+        image = raw if raw is not None else self.render()
+        if not self._camera_look.ideal:  # exposure, white balance, vignetting, motion blur
+            image = self._camera_look.apply(image, *looks.motion(self._client, self._robot))
+        image = self._effects.apply(image)
         self._delivered = (self._steps, image)
         return image
 
