@@ -204,9 +204,16 @@ def jetbot_rt_parser() -> argparse.ArgumentParser:
 
 
 def jetbot_train_parser() -> argparse.ArgumentParser:
-    from jetbot_rt.train.cli import build_parser
+    """``jetbot-train``'s parser; it imports the trainer's torch-free modules (gymnasium, from
+    the ``docs`` extra). A missing module is one line, not a traceback."""
+    try:
+        from jetbot_rt.train.cli import build_parser
 
-    return build_parser()
+        return build_parser()
+    except ModuleNotFoundError as exc:
+        raise SystemExit(f"docs: building jetbot-train's parser imported {exc.name!r}, which "
+                         "is not installed (the docs extra brings what the parser needs: "
+                         "gymnasium; the parser must not import more)") from None
 
 
 def _help_of(parser: argparse.ArgumentParser, action: argparse.Action) -> str:
