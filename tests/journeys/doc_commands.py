@@ -1,0 +1,166 @@
+"""The documented commands, read from the docs when a journey runs: a journey names a doc and
+the start of a command in one of its fenced blocks, and runs what the doc says now. A doc edit
+that drops or renames a command fails the journey (and ``test_every_journeys_commands_are_
+still_in_their_docs``, in the fast suite, for the long journeys too); one that changes its
+arguments is run as written.
+
+Knobs (``with_knobs``): the only changes a journey makes to a command, each to a text that must
+be in it: fewer steps, episodes or seconds where the doc's command has such a flag, a
+temporary path for a fixed one (``/tmp/chip.json``, ``/mnt/jetbot``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+"""The venv the suite runs in: its ``jetbot-rt``, ``jetbot-train`` and ``python`` come first."""
+SHELL_LANGS = ("", "sh", "bash", "shell", "console")
+
+# Each journey: (doc, the start of one of its commands). The docs site helper moves
+# commands between README.md and docs/: a moved command fails here, naming where it went.
+JOURNEYS: dict[str, list[tuple[str, str]]] = {
+    "drive the simulator (README)": [
+        ("README.md", "python3 -m venv .venv && .venv/bin/pip install -e '.[sim]'"),
+    ],
+    "train, evaluate, compare with a blind camera (README)": [
+        ("README.md", "jetbot-train train --task seek --out runs/seek"),
+        ("README.md", "jetbot-train eval --task seek --policy runs/seek/policy.onnx "
+                      "--episodes 100"),
+        ("README.md", "jetbot-train eval --task seek --policy runs/seek/policy.onnx --episodes 50 "
+                      "--ablate blank"),
+        ("README.md", "jetbot-train eval --task seek --policy runs/seek/policy.onnx --episodes 3 "
+                      "--video evals"),
+    ],
+    "record, report, replay (README)": [
+        ("README.md", "jetbot-rt run --backend sim --duration 20 --record rec"),
+        ("README.md", "jetbot-rt report rec"),
+        ("README.md", "jetbot-rt replay rec --policy new.onnx"),
+    ],
+    "the robot on the emulated board (docs/HARDWARE.md)": [
+        ("docs/HARDWARE.md", "jetbot-rt run --backend real --config dry.toml --board-emulator"),
+        ("docs/HARDWARE.md", "python -c \"from jetbot_rt.testing.pca9685_emulator import"),
+        ("docs/HARDWARE.md", "jetbot-rt stop --config dry.toml --board-emulator"),
+        ("docs/HARDWARE.md", "jetbot-rt check --config dry.toml --board-emulator"),
+    ],
+    "stage the service for the robot (docs/ROBOT.md)": [
+        ("docs/ROBOT.md", "jetbot-rt install-service --root /mnt/jetbot"),
+        ("docs/ROBOT.md", "systemd-sysusers --root=/mnt/jetbot"),
+        ("docs/ROBOT.md", "systemd-analyze --root=/mnt/jetbot verify"),
+    ],
+    "your own task (docs/TASKS.md)": [
+        ("docs/TASKS.md", "jetbot-train train --task examples/tasks/my_task.py:ParkAtBlueWall"),
+        ("docs/TASKS.md", "jetbot-train eval --task examples/tasks/my_task.py:ParkAtBlueWall"),
+        ("docs/TASKS.md", "printf '[sim]\\ntask = \"examples/tasks/my_task.py:"),
+        ("docs/TASKS.md", "jetbot-rt run --backend sim --config park.toml"),
+    ],
+}
+PYTHON_BLOCKS: dict[str, list[tuple[str, str]]] = {
+    "bring your own policy (docs/BRING_YOUR_OWN_POLICY.md)": [
+        ("docs/BRING_YOUR_OWN_POLICY.md", "export_policy(model, \"my_policy.onnx\""),
+    ],
+}
+
+
+def blocks(doc: str) -> list[tuple[str, list[str]]]:
+    """The fenced blocks of ``doc`` (relative to the repository): (language, lines)."""
+    found: list[tuple[str, list[str]]] = []
+    lang: str | None = None
+    lines: list[str] = []
+    for line in (REPO / doc).read_text().splitlines():
+        fence = re.match(r"\s*```(\w*)", line)
+        if fence and lang is None:
+            lang, lines = fence.group(1), []
+        elif fence:
+            found.append((lang, lines))
+            lang = None
+        elif lang is not None:
+            lines.append(line)
+    return found
+
+
+def _without_comment(line: str) -> str:
+    """The command before a shell comment (`` # ...`` outside quotes)."""
+    quote = None
+    for index, char in enumerate(line):
+        if quote:
+            quote = None if char == quote else quote
+        elif char in "'\"":
+            quote = char
+        elif char == "#" and index > 0 and line[index - 1].isspace():
+            return line[:index].rstrip()
+    return line.rstrip()
+
+
+def commands(doc: str) -> list[str]:
+    """Every command of ``doc``'s shell blocks, continuation lines joined, comments cut."""
+    found = []
+    for lang, lines in blocks(doc):
+        if lang not in SHELL_LANGS:
+            continue
+        pending = ""
+        for line in lines:
+            text = _without_comment(line)
+            if text.endswith("\\"):
+                pending += text[:-1].rstrip() + " "
+                continue
+            text = (pending + text.strip()).strip()
+            pending = ""
+            if text:
+                found.append(text)
+    return found
+
+
+def command(doc: str, start: str) -> str:
+    """The one command of ``doc`` that starts with ``start``, as the doc has it now."""
+    matches = [c for c in commands(doc) if c.startswith(start)]
+    if len(matches) == 1:
+        return matches[0]
+    if matches:
+        raise AssertionError(f"{doc}: {len(matches)} commands start with {start!r}: {matches}")
+    elsewhere = [str(p.relative_to(REPO)) for p in [REPO / "README.md", *sorted(
+        (REPO / "docs").glob("*.md"))] if any(c.startswith(start) for c in commands(
+            str(p.relative_to(REPO))))]
+    raise AssertionError(f"{doc} has no command starting with {start!r} any more (a journey "
+                         f"runs it: tests/journeys/doc_commands.py); found in: {elsewhere}")
+
+
+def python_block(doc: str, containing: str) -> str:
+    """The one Python block of ``doc`` that contains ``containing``."""
+    matches = ["\n".join(lines) + "\n" for lang, lines in blocks(doc)
+               if lang == "python" and any(containing in line for line in lines)]
+    assert len(matches) == 1, f"{doc}: {len(matches)} python blocks contain {containing!r}"
+    return matches[0]
+
+
+def with_knobs(text: str, knobs: Mapping[str, str]) -> str:
+    for old, new in knobs.items():
+        assert old in text, f"the knob {old!r} is not in the documented command: {text}"
+        text = text.replace(old, new)
+    return text
+
+
+def environment(**extra: str) -> dict[str, str]:
+    """This venv's programs first on PATH: the documented ``jetbot-rt`` is this checkout's."""
+    env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+    env.update(extra)
+    return env
+
+
+def sh(text: str, cwd: Path, timeout: float = 120,
+       env: Mapping[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """``text`` run by bash in ``cwd``, as a person pastes it."""
+    return subprocess.run(["bash", "-c", text], cwd=cwd, capture_output=True, text=True,
+                          timeout=timeout, env=dict(env or environment()))
+
+
+def ok(proc: subprocess.CompletedProcess[str]) -> subprocess.CompletedProcess[str]:
+    assert proc.returncode == 0, (proc.args, proc.returncode, proc.stdout[-3000:],
+                                  proc.stderr[-3000:])
+    return proc
