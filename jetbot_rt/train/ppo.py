@@ -118,7 +118,8 @@ class EpisodeStats:
             self.count += 1
 
     def row(self) -> dict[str, Any]:
-        returns, distances, successes = self.recent
+        returns, all_distances, successes = self.recent
+        distances = [d for d in all_distances if not np.isnan(d)]  # NaN: the task has none
         return {"episodes": self.count,
                 "mean_return": round(float(np.mean(returns)), 1) if returns else "",
                 "mean_final_distance": (round(float(np.mean(distances)), 4) if distances

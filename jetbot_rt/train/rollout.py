@@ -112,7 +112,8 @@ class LearnerRollouts(RolloutSource):
             for i in np.nonzero(done)[0]:
                 final_info = infos["final_info"]
                 episodes.append((float(final_info["episode"]["r"][i]),
-                                 float(final_info["distance"][i]),
+                                 float(final_info["distance"][i]) if "distance" in final_info
+                                 else np.nan,  # a task that reports no distance
                                  float(final_info["is_success"][i])))
             self.next_obs = model.preprocess(torch.from_numpy(frames).to(self.device))
             self.next_done = torch.as_tensor(done, dtype=torch.float32, device=self.device)

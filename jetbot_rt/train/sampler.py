@@ -105,7 +105,8 @@ class PolicySampler(gym.Wrapper):
             if terminated[t] or truncated[t]:
                 if truncated[t] and not terminated[t]:
                     final_values[t] = policy(next_obs[None])[2][0, 0]
-                episodes.append((t, float(info["episode"]["r"]), float(info["distance"]),
+                episodes.append((t, float(info["episode"]["r"]),
+                                 float(info.get("distance", np.nan)),  # a task may have none
                                  float(info["is_success"])))
                 next_obs, _ = self.env.reset()
             self._obs = next_obs
