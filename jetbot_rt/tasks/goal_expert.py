@@ -25,7 +25,7 @@ class GoalExpert:
     to ~0.3 m/s), touching the block at most without pushing it 3 cm. Why 3 cm inside 0.15 m:
     the student's stop is blurred over a few cm (the randomized camera mount moves the
     block's picture), and with 2 cm of margin most of its misses were stalls 0-1.5 cm
-    outside 0.15 m on dead-band robots (docs/TRAINING.md, "Measured")."""
+    outside 0.15 m on dead-band robots (docs/BENCHMARKS.md, "How seek's recipe was chosen")."""
     stop_lead: float = 0.0
     """s; moves the stop point out by speed * this. 0: the stop is a function of where the
     block is, which the camera shows; speed a single frame hardly shows, and a stop that
