@@ -205,7 +205,7 @@ def test_driving_blind_straight_ahead_fails_seek(tmp_path):
 def test_the_bundled_seek_policy_sees():
     """On the evaluation's first episodes (seeds 10000.., randomization on): the bundled seek
     policy succeeds; fed a blank grey image it fails; fed BGR frames (a camera seam with swapped
-    channels) it loses at least half. The full 100-episode figures are in docs/TRAINING.md."""
+    channels) it loses at least half. The full 100-episode figures are in docs/BENCHMARKS.md."""
     from jetbot_rt.runtime.policy import bundled_policy_path
     from jetbot_rt.train.evaluate import evaluate
 
