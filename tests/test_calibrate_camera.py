@@ -5,7 +5,6 @@ saved views fit again to the same numbers; bad input is one line and exit 2."""
 from __future__ import annotations
 
 import argparse
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +13,7 @@ import numpy as np
 import pytest
 import tomllib
 
-from jetbot_rt.calibration.intrinsics import Lens
+from jetbot_rt.calibration.intrinsics import Lens, radial_error_px
 from jetbot_rt.config.sections import load_config
 
 TRUTHS = {
@@ -31,21 +30,6 @@ K1 = 0.025
 EDGE_PX, CORNER_PX = 1.5, 5.0
 """The radial mapping (image radius per ray angle) against the truth's, at 640x360, out to
 the frame's side edge and out to its corner (the board is seen least there)."""
-
-
-def radial_error_px(truth: Lens, fitted: Lens, width: int = 640,
-                    height: int = 360) -> tuple[float, float]:
-    """The largest difference in image radius (px) between the two lenses for rays out to the
-    truth's side edge and out to its corner."""
-    out = []
-    matrix = truth.matrix(width, height)
-    for dx, dy in ((width / 2, 0.0), (width / 2, height / 2)):
-        widest = math.hypot(dx / matrix[0, 0], dy / matrix[1, 1])
-        theta = float(truth.undistort_angle(np.array([widest]), width, height)[0])
-        grid = np.linspace(0.0, theta, 200)
-        out.append(float(np.abs(fitted.focal * height * fitted.distort_angle(grid)
-                                - truth.focal * height * truth.distort_angle(grid)).max()))
-    return out[0], out[1]
 
 
 def _calibrate(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:

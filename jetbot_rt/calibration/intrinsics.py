@@ -121,11 +121,19 @@ class Lens:
         return xd * scale, yd * scale
 
 
-def sim_keys(lens: Lens) -> dict:
-    """The ``[sim]`` keys of ``lens`` (and ``lens = "fisheye"``)."""
-    return {"lens": "fisheye", "lens_focal": lens.focal, "lens_center": list(lens.center),
-            "lens_k1": lens.k[0], "lens_k2": lens.k[1], "lens_k3": lens.k[2],
-            "lens_k4": lens.k[3]}
+def radial_error_px(truth: Lens, fitted: Lens, width: int = 640,
+                    height: int = 360) -> tuple[float, float]:
+    """The largest difference in image radius (px) between the two lenses for rays out to the
+    truth's side edge and out to its corner."""
+    out = []
+    matrix = truth.matrix(width, height)
+    for dx, dy in ((width / 2, 0.0), (width / 2, height / 2)):
+        widest = math.hypot(dx / matrix[0, 0], dy / matrix[1, 1])
+        theta = float(truth.undistort_angle(np.array([widest]), width, height)[0])
+        grid = np.linspace(0.0, theta, 200)
+        out.append(float(np.abs(fitted.focal * height * fitted.distort_angle(grid)
+                                - truth.focal * height * truth.distort_angle(grid)).max()))
+    return out[0], out[1]
 
 
 def board_png() -> Path:
