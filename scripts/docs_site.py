@@ -18,14 +18,12 @@ code are made from it at build time, and links into the rest of the repository k
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
 import inspect
 import os
 import posixpath
 import re
 import sys
-import textwrap
 import typing
 from collections.abc import Iterator
 from pathlib import Path
@@ -44,23 +42,14 @@ COPIED_FROM_REPO = ("benchmarks/", "jetbot_rt/", "examples/", "systemd/", "scrip
 
 
 def _attribute_docs(cls: type) -> dict[str, str]:
-    """The docstring under each annotated field of ``cls`` and its bases (``x: int = 1`` then
-    a string), read from the source: Python keeps no attribute docstrings at run time."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        try:
-            source = textwrap.dedent(inspect.getsource(klass))
-        except (OSError, TypeError):  # a class made at run time (RandomizeConfig)
-            continue
-        body = ast.parse(source).body[0]
-        if not isinstance(body, ast.ClassDef):
-            continue
-        for stmt, after in zip(body.body, [*body.body[1:], None], strict=True):
-            if (isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name)
-                    and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
-                    and isinstance(after.value.value, str)):
-                docs[stmt.target.id] = inspect.cleandoc(after.value.value)
-    return docs
+    """The docstring under each field of a config section (the trainer's reader of them);
+    ``[randomize]``'s class is made at run time, so its written base speaks for it."""
+    from jetbot_rt.train.flags import field_docs
+
+    try:
+        return field_docs(cls)
+    except (OSError, TypeError):  # no source: RandomizeConfig (sim/config.py)
+        return field_docs(cls.__mro__[1])
 
 
 KEY_LINE = re.compile(r"^#?\s*([a-z_][a-z0-9_]*)\s*=\s*(.*)$")
@@ -150,9 +139,8 @@ def config_reference() -> str:
         "A config is a TOML file (`--config FILE`); flags override it. An unknown section or "
         "key, a wrong type or a value out of range is one line naming `[section] key` and exit "
         "code 2. `jetbot-train` reads the same file: `[sim]`, `[randomize]`, `[actions]` and "
-        "`[loop]` shape its env, and a `[train]` table (and `[train.model]`) sets the "
-        "trainer's options, each spelled as its flag without the dashes "
-        "([jetbot-train](jetbot-train.md)); `jetbot-rt` skips `[train]`.",
+        "`[loop]` shape its env, and a `[train]` table (and `[train.model]`, below) sets the "
+        "trainer's options ([jetbot-train](jetbot-train.md)); `jetbot-rt` skips `[train]`.",
         "",
     ]
     current = ""
@@ -173,11 +161,42 @@ def config_reference() -> str:
         lines += [f"`{key} = {_toml_value(_default_of(f))}`",
                   f":   *{_cell(type_text + (': ' + accepted if accepted else ''))}.* "
                   f"{_cell(said)}", ""]
+    lines += train_keys()
     lines += ["", "## The default file", "",
               "`jetbot-rt install-service` writes this file (every key with its default) to "
               "`/etc/jetbot-rt/config.toml`:", "", "```toml",
               DEFAULT_CONFIG.read_text(encoding="utf-8").rstrip(), "```", ""]
     return "\n".join(lines)
+
+
+def train_keys() -> list[str]:
+    """``[train]`` and ``[train.model]``: the trainers' parameters (``PPOArgs``, ``DAggerArgs``,
+    ``ModelConfig``), each with the flag that sets it too."""
+    from jetbot_rt.train.cli import flag
+    from jetbot_rt.train.flags import field_docs
+    from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig, PPOArgs
+
+    lines = ["", "## [train] and [train.model] (jetbot-train only)", "",
+             "The trainer's parameters: the dataclass default, then the task's default "
+             "(`Task.training`), then this table, then the flag. A PPO-only key with "
+             "`--algo dagger` (or the reverse) is an error.", ""]
+    ppo, dagger = {f.name: f for f in dataclasses.fields(PPOArgs)}, \
+        {f.name: f for f in dataclasses.fields(DAggerArgs)}
+    docs = {**field_docs(DAggerArgs), **field_docs(PPOArgs)}
+    for name in [*ppo, *(n for n in dagger if n not in ppo)]:
+        if name == "model":
+            continue
+        f = ppo.get(name) or dagger[name]
+        algo = "PPO and DAgger" if name in ppo and name in dagger else \
+            ("PPO" if name in ppo else "DAgger")
+        lines += [f"`{name} = {_toml_value(_default_of(f))}`",
+                  f":   *{algo}; `{flag(name)}`.* {_cell(docs.get(name, ''))}", ""]
+    lines += ["### [train.model]", ""]
+    model_docs = field_docs(ModelConfig)
+    for f in dataclasses.fields(ModelConfig):
+        lines += [f"`{f.name} = {_toml_value(_default_of(f))}`",
+                  f":   *`{flag('model.' + f.name)}`.* {_cell(model_docs.get(f.name, ''))}", ""]
+    return lines
 
 
 # ---- command-line reference --------------------------------------------------------------
