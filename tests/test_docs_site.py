@@ -114,3 +114,16 @@ def test_the_readme_is_a_front_page_whose_first_commands_install_and_run_then_te
     assert blocks[0].startswith("python3 -m venv .venv && ") and "jetbot-rt run --backend sim" \
         in blocks[0]
     assert blocks[1].startswith("apt-get update && ") and blocks[1].endswith("pytest -q -n 2")
+
+
+def test_the_config_reference_names_every_train_key_with_its_flag(pages):
+    import dataclasses
+
+    from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig, PPOArgs
+
+    page = pages["reference/config.md"]
+    train = _section_of(page, "[train] and [train.model] (jetbot-train only)")
+    for cls in (PPOArgs, DAggerArgs, ModelConfig):
+        for f in dataclasses.fields(cls):
+            if f.name != "model":
+                assert re.search(rf"^`{f.name} = .*`\n:   \*.*`--", train, re.MULTILINE), f.name
