@@ -112,8 +112,12 @@ def parse_metrics(text: str, names: tuple[str, ...], display: Path
         if header is None:
             return False, rows
         if tuple(header) != names:
+            extra = [name for name in header if name not in names][:3]
+            lacks = [name for name in names if name not in header][:3]
+            detail = "".join(f"; {what} {_clip(', '.join(those), 40)}" for what, those
+                             in (("it has", extra), ("it lacks", lacks)) if those)
             raise bad(1, f"the columns are {_clip(','.join(header))}, expected "
-                      f"{_clip(','.join(names))}")
+                      f"{_clip(','.join(names))}{detail}")
         for cells in reader:
             if not cells:
                 continue
