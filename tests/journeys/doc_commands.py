@@ -139,6 +139,32 @@ def python_block(doc: str, containing: str) -> str:
     return matches[0]
 
 
+INLINE: dict[str, list[tuple[str, str]]] = {
+    "the GUI without a display (docs/RUN.md)": [
+        ("docs/RUN.md", "xvfb-run -a jetbot-rt run --backend sim --gui --duration 20"),
+    ],
+    "bring your own policy (docs/BRING_YOUR_OWN_POLICY.md)": [
+        ("docs/BRING_YOUR_OWN_POLICY.md", "jetbot-rt run --backend sim --policy my_policy.onnx "
+                                          "--duration 10"),
+    ],
+    "train, evaluate, compare with a blind camera (README)": [
+        ("README.md", "jetbot-rt report evals/episode-10000"),
+    ],
+    "the robot on the emulated board (docs/HARDWARE.md)": [
+        ("docs/HARDWARE.md", '[camera] source = "gst:videotestsrc is-live=true"'),
+    ],
+}
+"""Commands and settings the docs give in running text: ``text`` must be in the doc (line
+breaks and indentation read as one space)."""
+
+
+def inline(doc: str, text: str) -> str:
+    """``text``, once checked to be in ``doc`` as written."""
+    words = " ".join((REPO / doc).read_text().split())
+    assert text in words, f"{doc} no longer says {text!r} (a journey runs it)"
+    return text
+
+
 def with_knobs(text: str, knobs: Mapping[str, str]) -> str:
     for old, new in knobs.items():
         assert old in text, f"the knob {old!r} is not in the documented command: {text}"

@@ -10,7 +10,18 @@ import shutil
 from pathlib import Path
 
 import pytest
-from doc_commands import BIN, JOURNEYS, PYTHON_BLOCKS, command, ok, python_block, sh, with_knobs
+from doc_commands import (
+    BIN,
+    INLINE,
+    JOURNEYS,
+    PYTHON_BLOCKS,
+    command,
+    inline,
+    ok,
+    python_block,
+    sh,
+    with_knobs,
+)
 
 needs_systemd = pytest.mark.skipif(
     not (shutil.which("systemd-analyze") and shutil.which("systemd-sysusers")),
@@ -26,6 +37,9 @@ def test_every_journeys_commands_are_still_in_their_docs() -> None:
     for blocks in PYTHON_BLOCKS.values():
         for doc, containing in blocks:
             python_block(doc, containing)
+    for texts in INLINE.values():
+        for doc, text in texts:
+            inline(doc, text)
 
 
 def test_drive_the_simulator_as_the_readme_says(tmp_path: Path) -> None:
