@@ -12,6 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from jetbot_rt.calibration.intrinsics import Lens
+
 MARKER_DICT = cv2.aruco.DICT_4X4_50
 MARKER_ID = 7
 SENSOR_ASPECT = 16 / 9
@@ -38,6 +40,21 @@ class Geometry:
     track: float = 0.11
     vfov_deg: float = 52.0
     """The pinhole's vertical field of view over the 16:9 sensor ([sim] camera_vfov_deg)."""
+    lens_focal: float = 0.0
+    """0: the camera is the pinhole above; else the fisheye of ``[sim] lens_focal``,
+    ``lens_center`` (``lens_cx``, ``lens_cy``) and ``lens_k1``..``lens_k4``."""
+    lens_cx: float = 0.5
+    lens_cy: float = 0.5
+    lens_k1: float = 0.0
+    lens_k2: float = 0.0
+    lens_k3: float = 0.0
+    lens_k4: float = 0.0
+
+    def lens(self) -> Lens | None:
+        if self.lens_focal <= 0:
+            return None
+        return Lens(self.lens_focal, (self.lens_cx, self.lens_cy),
+                    (self.lens_k1, self.lens_k2, self.lens_k3, self.lens_k4))
 
 
 def camera_matrix(width: int, height: int, vfov_deg: float) -> np.ndarray:
@@ -60,7 +77,12 @@ class MarkerMeter:
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         self._detector = cv2.aruco.ArucoDetector(
             cv2.aruco.getPredefinedDictionary(MARKER_DICT), params)
-        self._matrix = camera_matrix(frame_size[0], frame_size[1], geometry.vfov_deg)
+        self._lens = geometry.lens()
+        if self._lens is None:
+            self._matrix = camera_matrix(frame_size[0], frame_size[1], geometry.vfov_deg)
+        else:  # the corners are undistorted to the plane z = 1 first: a unit pinhole
+            self._fisheye = (self._lens.matrix(*frame_size), self._lens.distortion())
+            self._matrix = np.eye(3)
         half = geometry.marker_size / 2
         self._object = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0],
                                  [-half, -half, 0]], dtype=np.float64)
@@ -72,8 +94,12 @@ class MarkerMeter:
         found = [c for c, i in zip(corners, ids.ravel()) if i == MARKER_ID]
         if len(found) != 1:
             return None
-        ok, _rvec, tvec = cv2.solvePnP(self._object, found[0].reshape(4, 2).astype(np.float64),
-                                       self._matrix, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        points = found[0].reshape(4, 2).astype(np.float64)
+        if self._lens is not None:
+            points = cv2.fisheye.undistortPoints(points.reshape(1, 4, 2), *self._fisheye)
+            points = points.reshape(4, 2).astype(np.float64)
+        ok, _rvec, tvec = cv2.solvePnP(self._object, points, self._matrix, None,
+                                       flags=cv2.SOLVEPNP_IPPE_SQUARE)
         if not ok:
             return None
         tx, ty, tz = (float(v) for v in tvec.ravel())

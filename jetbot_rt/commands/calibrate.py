@@ -37,6 +37,7 @@ from jetbot_rt.hal.i2c import add_emulator_argument
 from jetbot_rt.hal.registry import BACKEND_MODULES
 from jetbot_rt.recording.reader import Recording
 from jetbot_rt.recording.recorder import expand_path
+from jetbot_rt.sim.config import SimConfig
 
 FRAME_SIZE = (320, 180)
 SIM_MARKER_DISTANCE = 0.5
@@ -85,7 +86,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_emulator_argument(parser)
 
 
-def _geometry(args: argparse.Namespace, camera_height: float, vfov_deg: float) -> Geometry:
+def _geometry(args: argparse.Namespace, sim: SimConfig) -> Geometry:
     checks = [("--marker-size", args.marker_size, 0.01, 1.0),
               ("--wheel-radius", args.wheel_radius, 0.005, 0.5),
               ("--track", args.track, 0.02, 1.0), ("--camera-offset", args.camera_offset, -0.5,
@@ -95,9 +96,15 @@ def _geometry(args: argparse.Namespace, camera_height: float, vfov_deg: float) -
     for flag, value, low, high in checks:
         if not (math.isfinite(value) and low <= value <= high):
             raise UsageError(f"{flag} must be in [{low:g}, {high:g}], got {value:g}")
+    lens = {}
+    if sim.lens == "fisheye":  # the marker is measured through the configured lens
+        lens = {"lens_focal": sim.lens_focal, "lens_cx": sim.lens_center[0],
+                "lens_cy": sim.lens_center[1], "lens_k1": sim.lens_k1, "lens_k2": sim.lens_k2,
+                "lens_k3": sim.lens_k3, "lens_k4": sim.lens_k4}
     return Geometry(marker_size=args.marker_size, marker_height=height,
-                    camera_height=camera_height, camera_offset=args.camera_offset,
-                    wheel_radius=args.wheel_radius, track=args.track, vfov_deg=vfov_deg)
+                    camera_height=sim.camera_height, camera_offset=args.camera_offset,
+                    wheel_radius=args.wheel_radius, track=args.track,
+                    vfov_deg=sim.camera_vfov_deg, **lens)
 
 
 class LoadProgramme(Phase):
@@ -154,7 +161,7 @@ class Calibration(Runtime):
         self.config.actions.max_speed = 1.0  # the programme's duties are the duties
         self.config.actions.trim = [1.0, 1.0]  # the robot as it is, untrimmed
         sim = self.config.sim
-        geometry = _geometry(args, sim.camera_height, sim.camera_vfov_deg)
+        geometry = _geometry(args, sim)
         self.programme = Programme(geometry, limits, FRAME_SIZE, self.config.loop.rate_hz)
 
     def phases(self) -> list[Phase]:
@@ -197,7 +204,8 @@ def read_data(path: str) -> tuple[Data, Geometry, float]:
         max_duty = float(described["limits"]["max_duty"])
         width, height = (int(v) for v in recording.meta["frame_size"])
         period = 1.0 / float(recording.meta["rate_hz"])
-        if not all(math.isfinite(v) and v >= 0 for v in vars(geometry).values()) or not (
+        if not all(math.isfinite(v) and (v >= 0 or k.startswith("lens_k"))
+                   for k, v in vars(geometry).items()) or not (
                 0 < max_duty <= 1 and 0 < period < 1 and width > 0 and height > 0):
             raise ValueError("a value out of range")
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
