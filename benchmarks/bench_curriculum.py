@@ -316,7 +316,7 @@ def summary(arm: Arm, args: argparse.Namespace) -> dict[str, Any]:
         "trained_iterations": max(rows) if rows else 0,
         "trained_wall_s": float(last.get("wall_s") or 0.0),
         "trained_steps": int(last.get("global_step") or 0),
-        "final_difficulty": float(last["difficulty"]) if last.get("difficulty") else None,
+        "final_difficulty": float(last.get("difficulty") or 1.0),  # none: 1 throughout
         "stopped_by": arm.stopped_by,
         "train_exit_code": arm.exit_code,
         "train_cores": len(arm.train_cores),
@@ -453,7 +453,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--steps-per-iteration", type=int)
     parser.add_argument("--train-samples", type=int)
     parser.add_argument("--train-arg", action="append", default=[],
-                        help="one more jetbot-train argument for both arms (repeatable)")
+                        help="one more jetbot-train argument for both arms, repeatable: "
+                             "--train-arg=--beta --train-arg=0.25")
     parser.add_argument("--work", help="directory for the runs (default: a temporary one, "
                                        "removed at the end)")
     args = parser.parse_args(argv)
@@ -517,7 +518,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {out / 'curriculum.json'} and curriculum.md in {result['wall_s']:.0f} s")
     if not args.work:
         shutil.rmtree(work, ignore_errors=True)
-    return 0
+    return 1 if any(arm.error for arm in arms) else 0
 
 
 if __name__ == "__main__":

@@ -171,3 +171,38 @@ def test_a_user_task_without_a_curriculum_trains_and_refuses_one(tmp_path, capsy
     assert result.returncode == 0, result.stderr
     header = (out / "metrics.csv").read_text().splitlines()[0]
     assert header.startswith("update,global_step") and COLUMN not in header
+
+
+@pytest.mark.long
+def test_ray_workers_get_the_difficulty_and_a_restarted_one_gets_it_again():
+    """Ray (about 15 s to start): ``set_attr`` reaches the actor's envs, and an actor Ray
+    restarts has it set again before its envs reset with their new seeds."""
+    ray = pytest.importorskip("ray")
+    from jetbot_rt.train.ray_workers import RESEED_STRIDE
+    from jetbot_rt.train.vec_env import EnvSpec, make_vector_env
+    from jetbot_rt.train.wrappers import Shaping
+
+    easy = copy.copy(load_task("seek"))
+    easy.difficulty = 0.0
+
+    def goals(seeds: list[int]) -> np.ndarray:
+        return np.array([easy.scene(np.random.default_rng(s), True).piece("goal").xy
+                         for s in seeds])
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        envs = make_vector_env(EnvSpec("seek", Config(), Shaping(), 56, keep=("goal_xy",)), 2,
+                               1, ray="local")
+        try:
+            send(envs, 0.0)
+            _, info = envs.reset(seed=[5, 6])
+            assert np.allclose(info["goal_xy"], goals([5, 6]))
+            ray.kill(envs.actors[0], no_restart=False)
+            _, _, _, _, info = envs.step(np.zeros((2, 2), dtype=np.float32))
+            assert envs.restarts == 1
+            reseeded = [5 + RESEED_STRIDE, 6 + RESEED_STRIDE]
+            assert np.allclose(info["goal_xy"], goals(reseeded))
+        finally:
+            envs.close()
+    finally:
+        ray.shutdown()
