@@ -34,7 +34,8 @@ DOCS = "docs"
 DEFAULT_CONFIG = ROOT / "jetbot_rt" / "data" / "default-config.toml"
 GENERATED_NOTE = ("Generated at build time by `scripts/docs_site.py` from {source}; edit "
                   "that, not this page.")
-COPIED_FROM_REPO = ("benchmarks/", "jetbot_rt/", "examples/", "systemd/", "scripts/")
+COPIED_FROM_REPO = ("benchmarks/", "jetbot_rt/", "examples/", "systemd/", "scripts/", "tests/",
+                    "constraints/")
 """Where a docs page may link outside docs/ and have the file copied into the site."""
 
 
