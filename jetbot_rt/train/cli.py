@@ -130,7 +130,46 @@ def build_parser() -> argparse.ArgumentParser:
                                "does (look at it with jetbot-rt report)")
     evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_sweep_parser(sub)
+    _add_finetune_parser(sub)
     return parser
+
+
+def _add_finetune_parser(sub: Any) -> None:
+    from jetbot_rt.train.finetune import FinetuneArgs
+    from jetbot_rt.train.flags import positive_int
+
+    default = FinetuneArgs([], "", "")
+    finetune = sub.add_parser(
+        "finetune", help="fine-tune a policy on jetbot-rt drive recordings (the person's "
+        "ticks as labels), mixed with the simulator's frames", formatter_class=HelpFormatter,
+        description="Fine-tune a policy on the frames of jetbot-rt drive recordings: the "
+        "ticks a person drove (takeovers of a policy, or hand driving) are the labels; each "
+        "batch mixes them with frames of the simulator's training randomization so that what "
+        "it taught is kept. Writes OUT/policy.onnx (the runtime's contract) and "
+        "OUT/finetune.json. docs/DRIVE.md.")
+    finetune.add_argument("--recordings", nargs="+", required=True, metavar="DIR",
+                          help="jetbot-rt drive --record directories")
+    finetune.add_argument("--init", required=True,
+                          help="the starting policy: an ONNX this trainer exported, or a "
+                               "checkpoint.pt")
+    finetune.add_argument("--out", required=True, help="output directory")
+    finetune.add_argument("--task", help="the task (default: the one --init names): " + TASK_HELP)
+    finetune.add_argument("--config", help="TOML: [sim]/[randomize] of the simulator's share "
+                          "(default: the task's training randomization)")
+    finetune.add_argument("--holdout", nargs="+", default=[], metavar="DIR",
+                          help="recordings kept out of training: their action error on human "
+                               "ticks, before and after, is printed")
+    finetune.add_argument("--steps", type=positive_int, default=default.steps,
+                          help="gradient steps")
+    finetune.add_argument("--batch-size", type=positive_int, default=default.batch_size,
+                          help="frames per step")
+    finetune.add_argument("--learning-rate", type=float, default=default.learning_rate,
+                          help="Adam's step size")
+    finetune.add_argument("--sim-share", type=float, default=default.sim_share,
+                          help="share of each batch from the simulator, in [0, 1)")
+    finetune.add_argument("--sim-frames", type=int, default=default.sim_frames,
+                          help="simulator frames collected (labelled by the task's expert)")
+    finetune.add_argument("--seed", type=int, default=default.seed, help="random seed")
 
 
 def _add_sweep_parser(sub: Any) -> None:
@@ -248,7 +287,28 @@ def _sweep(args: argparse.Namespace, argv: list[str]) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"train": _train, "export": _export, "eval": _eval, "sweep": _sweep}
+def _finetune(args: argparse.Namespace, argv: list[str]) -> int:
+    from jetbot_rt.config.sections import load_config
+    from jetbot_rt.train.finetune import FinetuneArgs, finetune
+
+    summary = finetune(FinetuneArgs(
+        recordings=args.recordings, init=args.init, out=args.out, task=args.task,
+        config=load_config(args.config) if args.config else None,
+        holdout=tuple(args.holdout), steps=args.steps, batch_size=args.batch_size,
+        learning_rate=args.learning_rate, sim_share=args.sim_share,
+        sim_frames=args.sim_frames, seed=args.seed))
+    before, after = summary["action_error_before"], summary["action_error_after"]
+    line = (f"fine-tuned on {summary['human_ticks']} human ticks ({summary['takeovers']} "
+            f"takeovers) and {summary['sim_frames']} sim frames in {summary['wall_s']:.0f} s; "
+            f"action error on the human ticks {before['train']:.3f} -> {after['train']:.3f}")
+    if "holdout" in before:
+        line += f", held out {before['holdout']:.3f} -> {after['holdout']:.3f}"
+    print(f"{line}; policy {summary['policy']}")
+    return EXIT_OK
+
+
+COMMANDS = {"train": _train, "export": _export, "eval": _eval, "sweep": _sweep,
+            "finetune": _finetune}
 
 
 def missing_extra() -> list[str]:
