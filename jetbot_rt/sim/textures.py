@@ -126,13 +126,15 @@ def wood(base: Rgb, rng: np.random.Generator) -> np.ndarray:
 
 
 def carpet(base: Rgb, rng: np.random.Generator) -> np.ndarray:
-    """Pile: texel-fine noise (+-10 %, per channel a little), soft blotches (+-6 %) where the
-    pile lies differently, and no straight line anywhere."""
+    """Pile: texel-fine light and shade of the tufts (about +-8 %), a faint colour noise of
+    the fibres (+-2 % per channel), soft blotches (+-6 %) where the pile lies differently,
+    and no straight line anywhere."""
     n = FLOOR_TEXELS
-    fine = rng.random((n, n, 3), dtype=np.float32) - np.float32(0.5)
-    fine = cv2.GaussianBlur(fine, (0, 0), 0.7) * np.float32(0.5) + fine * np.float32(0.08)
+    pile = rng.random((n, n), dtype=np.float32) - np.float32(0.5)  # light and shade of tufts
+    pile = cv2.GaussianBlur(pile, (0, 0), 0.7) * np.float32(0.4) + pile * np.float32(0.06)
+    fibre = (rng.random((n, n, 3), dtype=np.float32) - np.float32(0.5)) * np.float32(0.04)
     blotch = 0.06 * fractal_noise(rng, (n, n), 8, 3)
-    return _to_u8(_shade(base, 1.0 + fine + blotch[:, :, None]))
+    return _to_u8(_shade(base, 1.0 + (pile + blotch)[:, :, None] + fibre))
 
 
 def tiles(base: Rgb, rng: np.random.Generator) -> np.ndarray:
