@@ -541,10 +541,10 @@ def run(args: argparse.Namespace) -> int:
                 f"; {video.shortened} pauses over {MAX_GAP_S:g} s shortened to it"
                 if video.shortened else "",
                 f"; cut at {MAX_VIDEO_FRAMES} frames" if video.cut else ""])
-            print(f"wrote {target} ({video.written} frames, {video.written / video.fps:.1f} s, "
-                  f"{video.codec}{notes})", flush=True)
-            if video.codec != "H.264":
-                print(f"note: {target.name} is MPEG-4 Part 2: {NO_H264}", flush=True)
+            print(f"wrote {target} ({video.written} frames, {video.written / video.fps:.1f} s"
+                  f"{notes})", flush=True)
+            print("video: H.264" if video.codec == "H.264"
+                  else f"note: {target.name} is MPEG-4 Part 2 (mp4v): {NO_H264}", flush=True)
     except OSError as exc:
         print(f"jetbot-rt report: error: cannot write {shown(target)}: "
               f"{exc.strerror or exc}", file=sys.stderr, flush=True)
