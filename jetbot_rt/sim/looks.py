@@ -50,6 +50,13 @@ def room_urdf(sim: SimConfig) -> str:
     return TEXTURED_ROOM if textured(sim) else PLAIN_ROOM
 
 
+def _remove(path: str, owner: int) -> None:
+    """Remove the directory at exit, in the process that made it only (a forked child
+    inherits the registration and would remove its parent's directory)."""
+    if os.getpid() == owner:
+        shutil.rmtree(path, ignore_errors=True)
+
+
 def _texture_dir() -> str:
     """This process's private directory for texture files (0700, removed at exit; its
     files are only ever ours, written and then read back by PyBullet)."""
@@ -58,7 +65,7 @@ def _texture_dir() -> str:
         shm = "/dev/shm"
         where = shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
         path = tempfile.mkdtemp(prefix="jetbot_rt-textures-", dir=where)
-        atexit.register(shutil.rmtree, path, True)
+        atexit.register(_remove, path, os.getpid())
         _DIR.append(path)
     return _DIR[0]
 
