@@ -47,3 +47,14 @@ def test_gui_without_a_display_names_xvfb_run(monkeypatch) -> None:
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     with pytest.raises(UsageError, match="xvfb-run -a jetbot-rt"):
         JetbotWorld(SimConfig(), gui=True)
+
+
+def test_a_closed_stdout_stays_closed_and_nothing_breaks() -> None:
+    script = ("import os, sys\n"
+              "from jetbot_rt.sim.native_output import pybullet_chatter_filtered\n"
+              "with pybullet_chatter_filtered():\n"
+              "    os.write(2, b'through\\n')\n"
+              "try:\n    os.fstat(1)\nexcept OSError:\n    print('closed', file=sys.stderr)\n")
+    proc = subprocess.run(["bash", "-c", f'"{sys.executable}" -c "$0" >&-', script],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stderr.split() == ["through", "closed"], proc.stderr

@@ -26,10 +26,19 @@ def pybullet_chatter_filtered() -> Iterator[list[str]]:
     prints meanwhile (ours, a warning) still goes where it went: ``sys.stdout`` and
     ``sys.stderr`` write to the original descriptors for the block."""
     streams = (sys.stdout, sys.stderr)
+    captured: list[str] = []
+    saved = []
+    for fd in (1, 2):
+        with contextlib.suppress(OSError):
+            saved.append(os.dup(fd))
+    if len(saved) < 2 or None in streams:
+        # a closed descriptor or stream (`>&-`): nothing to keep clean; never open one
+        for fd in saved:
+            os.close(fd)
+        yield captured
+        return
     for stream in streams:
         stream.flush()
-    captured: list[str] = []
-    saved = [os.dup(1), os.dup(2)]
     try:
         with tempfile.TemporaryFile() as sink:
             os.dup2(sink.fileno(), 1)
