@@ -54,7 +54,7 @@ def run(name: str, truth: dict, where: Path) -> dict:
             "center": [round(v, 4) for v in fitted.center],
             "k": [round(v, 4) for v in fitted.k],
             "radial_error_px_edge": round(edge, 2), "radial_error_px_corner": round(corner, 2),
-            "wall_s": round(wall, 1)}
+            "wall_s": round(wall, 1), "toml": text}
 
 
 def markdown(result: dict) -> str:

@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from jetbot_rt.calibration.intrinsics import BOARD_INNER, BOARD_SQUARE, board_png
+from jetbot_rt.calibration.intrinsics import BOARD_INNER, BOARD_SQUARE, Lens, board_png
+from jetbot_rt.sim.camera_model import CAMERA_ASPECT
 from jetbot_rt.sim.pybullet_import import import_pybullet
 from jetbot_rt.sim.world import JetbotWorld
 
@@ -41,9 +42,11 @@ class BoardPose:
     roll_deg: float = 0.0
 
 
-def board_views(count: int = 15) -> list[BoardPose]:
+def board_views(count: int = 15, field_deg: tuple[float, float] = (50.0, 28.0)) -> list[BoardPose]:
     """``count`` poses spread over the frame (centre, sides, corners), near and far, tilted
-    both ways: what a person does with the board in front of the camera. Deterministic."""
+    both ways: what a person does with the board in front of the camera, watching where the
+    frame's edges are (``field_deg``: the angles from the axis to the frame's side and top
+    edges; the datasheet lens's by default). Deterministic."""
     rng = np.random.default_rng(20)
     spots = [(0.0, 0.0), (-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, 1), (-1, 1), (1, -1),
              (-0.5, 0.5), (0.5, -0.5), (-0.5, -0.5), (0.5, 0.5)]
@@ -51,10 +54,10 @@ def board_views(count: int = 15) -> list[BoardPose]:
     for i in range(count):
         sx, sy = spots[i % len(spots)]
         ahead = float(rng.uniform(0.33, 0.45))
-        # out to the frame's edges (the datasheet lens: ~50 degrees to the sides, ~28 up and
-        # down), where the distortion is: some of these views leave the frame and are dropped
-        right = sx * ahead * math.tan(math.radians(40)) - sx * 0.04
-        up = sy * ahead * math.tan(math.radians(16))
+        # out to the frame's edges, where the distortion is (the board's centre 10 and 12
+        # degrees inside them): some of these views leave the frame and are dropped
+        right = sx * ahead * math.tan(math.radians(field_deg[0] - 10)) - sx * 0.04
+        up = sy * ahead * math.tan(math.radians(field_deg[1] - 12))
         views.append(BoardPose(ahead, right, up, float(rng.uniform(-30, 30)) - 15 * sx,
                                float(rng.uniform(-25, 25)), float(rng.uniform(-15, 15))))
     return views
@@ -97,6 +100,18 @@ def _turn(a: np.ndarray, b: np.ndarray, axis: np.ndarray,
     return a * c + b * s, b * c - a * s
 
 
+def field_angles(sim: SimConfig, size: tuple[int, int]) -> tuple[float, float]:
+    """Degrees from the optical axis to the frame's side edge and to its top edge."""
+    width, height = size
+    if sim.lens != "fisheye":
+        half_v = math.radians(sim.camera_vfov_deg) / 2
+        return (math.degrees(math.atan(CAMERA_ASPECT * math.tan(half_v))), math.degrees(half_v))
+    lens = Lens.from_sim(sim)
+    matrix = lens.matrix(width, height)
+    edges = np.array([width / 2 / matrix[0, 0], height / 2 / matrix[1, 1]])
+    return tuple(float(math.degrees(a)) for a in lens.undistort_angle(edges, width, height))
+
+
 def sim_views(sim: SimConfig, size: tuple[int, int], count: int) -> list[np.ndarray]:
     """The board at each of ``board_views(count)`` through ``[sim]``'s lens, rendered at
     ``size`` (the camera's ideal render: no latency, no sensor effects). The robot's camera is
@@ -107,7 +122,7 @@ def sim_views(sim: SimConfig, size: tuple[int, int], count: int) -> list[np.ndar
     try:
         body = None
         images = []
-        for pose in board_views(count):
+        for pose in board_views(count, field_angles(sim, size)):
             body = show_board(world, pose, previous=body)
             images.append(world.render())
         return images
