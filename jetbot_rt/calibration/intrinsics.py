@@ -86,12 +86,13 @@ class Lens:
         reach = float(table[last])
         widest = float(np.max(theta_d))
         if widest > reach:
-            corner = self.corner_angle_deg(width, height)
+            folds = last < len(grid) - 1
+            why = (f"its distortion folds back at {math.degrees(grid[last]):.0f} degrees"
+                   if folds else f"a ray at {MAX_ANGLE_DEG:g} degrees, the most the sim "
+                   "renders, lands inside the frame")
             raise UsageError(
-                f"[sim] lens: the frame's corners are {corner} from the axis; this model "
-                f"(lens_focal {self.focal:g}, lens_k1..k4 {list(self.k)}) reaches "
-                f"{math.degrees(grid[last]):.0f} degrees ({MAX_ANGLE_DEG:g} at most, the "
-                "distortion rising all the way)")
+                f"[sim] lens: this lens (lens_focal {self.focal:g}, lens_k1..k4 "
+                f"{list(self.k)}) cannot fill a {width}x{height} frame: {why}")
         theta = np.interp(theta_d, table[:last + 1], grid[:last + 1])
         k = np.array(self.k)
         for _ in range(3):  # Newton: the table is close, these make it exact
@@ -99,14 +100,6 @@ class Lens:
             slope = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
             theta = theta - (self.distort_angle(theta) - theta_d) / slope
         return theta
-
-    def corner_angle_deg(self, width: int, height: int) -> str:
-        """The widest image angle of the frame, in words (for messages)."""
-        m = self.matrix(width, height)
-        xs = (np.array([-0.5, width - 0.5]) - m[0, 2]) / m[0, 0]
-        ys = (np.array([-0.5, height - 0.5]) - m[1, 2]) / m[1, 1]
-        widest = max(math.hypot(x, y) for x in xs for y in ys)
-        return f"{math.degrees(widest):.0f} degrees (in the image, before the distortion)"
 
     def rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """For each pixel centre of a ``width`` x ``height`` frame, where its ray meets the
