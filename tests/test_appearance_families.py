@@ -92,6 +92,12 @@ def test_the_held_out_looks_are_never_drawn_by_the_training_randomization():
         assert held_out(sim, ranges) is None, looks
         assert not textures.goal_like(tuple(looks["floor_color"]))
     assert {d["floor_texture"] for d in drawn} == set(ranges.floor_families)
+    for key in ("clutter", "lamps", "window_light", "exposure", "gain_noise", "vignetting",
+                "motion_blur"):  # every draw within its [randomize] range
+        low, high = getattr(ranges, key)
+        assert all(low <= d[key] <= high for d in drawn), key
+    assert all(ranges.white_balance[0] <= d["white_balance"][i] <= ranges.white_balance[1]
+               for d in drawn for i in (0, 2))
     files = sorted(CONDITIONS.glob("*.toml"))
     assert len(files) >= 8
     for path in files:
