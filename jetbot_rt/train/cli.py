@@ -169,6 +169,8 @@ def _add_finetune_parser(sub: Any) -> None:
                           help="share of each batch from the simulator, in [0, 1)")
     finetune.add_argument("--sim-frames", type=int, default=default.sim_frames,
                           help="simulator frames collected (labelled by the task's expert)")
+    finetune.add_argument("--stop-weight", type=float, default=default.stop_weight,
+                          help="weight of stop labels (both wheels <= 0) in the loss")
     finetune.add_argument("--seed", type=int, default=default.seed, help="random seed")
 
 
@@ -296,7 +298,7 @@ def _finetune(args: argparse.Namespace, argv: list[str]) -> int:
         config=load_config(args.config) if args.config else None,
         holdout=tuple(args.holdout), steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.learning_rate, sim_share=args.sim_share,
-        sim_frames=args.sim_frames, seed=args.seed))
+        sim_frames=args.sim_frames, stop_weight=args.stop_weight, seed=args.seed))
     before, after = summary["action_error_before"], summary["action_error_after"]
     line = (f"fine-tuned on {summary['human_ticks']} human ticks ({summary['takeovers']} "
             f"takeovers) and {summary['sim_frames']} sim frames in {summary['wall_s']:.0f} s; "

@@ -77,6 +77,8 @@ class FinetuneArgs:
             raise OptionError("sim_share", f"must be in [0, 1), got {self.sim_share:g}")
         if not self.learning_rate > 0:
             raise OptionError("learning_rate", f"must be > 0, got {self.learning_rate:g}")
+        if not self.stop_weight > 0:
+            raise OptionError("stop_weight", f"must be > 0, got {self.stop_weight:g}")
         if not self.recordings:
             raise OptionError("recordings", "needs at least one recording directory")
 
@@ -361,7 +363,8 @@ def _finetune(args: FinetuneArgs, began: float) -> dict[str, Any]:
             "human_ticks": len(person.labels), "ticks_read": person.ticks,
             "takeovers": person.takeovers, "sim_frames": len(sim) if sim is not None else 0,
             "sim_share": args.sim_share, "steps": args.steps, "batch_size": args.batch_size,
-            "learning_rate": args.learning_rate, "first_loss": round(losses[0], 5),
+            "learning_rate": args.learning_rate, "stop_weight": args.stop_weight,
+            "first_loss": round(losses[0], 5),
             "last_loss": round(float(np.mean(losses[-50:])), 5),
             "action_error_before": {k: round(v, 4) for k, v in before.items()},
             "action_error_after": {k: round(v, 4) for k, v in after.items()},
