@@ -25,6 +25,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from jetbot_rt.train.hyperparams import CurriculumOptions
+from jetbot_rt.train.run_dir import Panel
 
 COLUMN = "difficulty"
 """The metrics.csv column a run with a curriculum adds (after the trainer's own)."""
@@ -95,10 +96,19 @@ def resumed_difficulty(rows: list[tuple[float | None, ...]], names: tuple[str, .
     return None if chosen is None else float(chosen[column])  # type: ignore[arg-type]
 
 
+def curve(panels: tuple[Panel, ...], schedule: Schedule | None) -> tuple[Panel, ...]:
+    """A trainer's learning-curve panels, with the difficulty's below them where there is a
+    curriculum."""
+    if schedule is None:
+        return panels
+    return (*panels, Panel(COLUMN, "difficulty (curriculum)", ylim=(-0.05, 1.05),
+                           style="-", color="tab:purple"))
+
+
 def metric_fields(fields: tuple[str, ...], options: CurriculumOptions) -> tuple[str, ...]:
     """A trainer's metrics columns, with the difficulty's where there is a curriculum (a run
     without one writes the columns it always did, so its directory resumes as before)."""
     return (*fields, COLUMN) if options.curriculum else fields
 
 
-__all__ = ["COLUMN", "Schedule", "metric_fields", "resumed_difficulty", "send"]
+__all__ = ["COLUMN", "Schedule", "curve", "metric_fields", "resumed_difficulty", "send"]

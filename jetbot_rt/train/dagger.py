@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.tasks import load_task
-from jetbot_rt.train.curriculum import Schedule, metric_fields, send
+from jetbot_rt.train.curriculum import Schedule, curve, metric_fields, send
 from jetbot_rt.train.dagger_sampler import LabelSampler
 from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
@@ -273,7 +273,7 @@ def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
         if run.envs is not None:
             close_vector_env(run.envs, interrupted)
     run.run.export_policy(run.model.eval(), options.task, run.max_speed)
-    run.run.plot_curve("jetbot-train DAgger learning curve", CURVE)
+    run.run.plot_curve("jetbot-train DAgger learning curve", curve(CURVE, run.schedule))
     wall = progress.wall_s()
     summary = run.run.summary(progress, round(progress.global_step / max(wall, 1e-9), 1))
     if interrupted:

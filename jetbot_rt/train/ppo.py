@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from jetbot_rt.tasks import load_task
-from jetbot_rt.train.curriculum import Schedule, metric_fields, send
+from jetbot_rt.train.curriculum import Schedule, curve, metric_fields, send
 from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
 from jetbot_rt.train.hyperparams import PPOArgs
@@ -239,7 +239,7 @@ class _Run:
     def finish(self) -> dict[str, Any]:
         """The policy exported, the curve plotted; the summary."""
         self.run.export_policy(self.model.cpu().eval(), self.options.task, self.max_speed)
-        self.run.plot_curve("jetbot-train PPO learning curve", CURVE)
+        self.run.plot_curve("jetbot-train PPO learning curve", curve(CURVE, self.schedule))
         return self.run.summary(self.progress, self.steps_per_s)
 
 
