@@ -28,8 +28,8 @@ last one evaluated below it. Time and steps to it are the training's own (``wall
 ``global_step`` of its ``metrics.csv`` row): the evaluator runs on other cores, and its time
 is not counted.
 
-Writes ``curriculum.json`` and ``curriculum.md`` (and each arm's ``metrics.csv``) into
-``$OUT/curriculum/`` when the environment variable OUT is set, else into
+Writes ``curriculum.json`` and ``curriculum.md`` (and each arm's ``metrics.csv`` and training
+log) into ``$OUT/curriculum/`` when the environment variable OUT is set, else into
 ``benchmarks/results/``.
 """
 
@@ -249,10 +249,10 @@ def run_arm(args: argparse.Namespace, arm: Arm) -> None:
                           args.target)
     process = subprocess.Popen(train_command(args, arm), cwd=REPO, stdout=log,
                                stderr=subprocess.STDOUT)
-    # pinned before it starts its env workers (they inherit it); no preexec_fn: this
-    # process has threads
-    os.sched_setaffinity(process.pid, arm.train_cores)
     try:
+        # pinned before it starts its env workers (they inherit it); no preexec_fn: this
+        # process has threads
+        os.sched_setaffinity(process.pid, arm.train_cores)
         while process.poll() is None and time.monotonic() < arm.train_deadline:
             done = {e["iteration"] for e in arm.evaluations}
             fresh = [i for i in snapshots(arm.run_dir) if i not in done]
@@ -511,9 +511,10 @@ def main(argv: list[str] | None = None) -> int:
     (out / "curriculum.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     (out / "curriculum.md").write_text(markdown(result))
     for arm in arms:
-        for name, target in (("metrics.csv", f"curriculum_{arm.name}_metrics.csv"),):
-            if (arm.run_dir / name).exists():
-                shutil.copyfile(arm.run_dir / name, out / target)
+        for source, target in ((arm.run_dir / "metrics.csv", f"curriculum_{arm.name}_metrics.csv"),
+                               (work / f"{arm.name}.log", f"curriculum_{arm.name}_train.log")):
+            if source.exists():
+                shutil.copyfile(source, out / target)
     print(result["figure"])
     print(f"wrote {out / 'curriculum.json'} and curriculum.md in {result['wall_s']:.0f} s")
     if not args.work:
