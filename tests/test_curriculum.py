@@ -131,8 +131,11 @@ def test_the_difficulty_reaches_the_env_workers_and_evaluation_stays_at_full():
         assert tuple(info["goal_xy"][0]) == pytest.approx(want)
     finally:
         envs.close()
-    training = JetbotEnv("seek")
+    halfway = copy.copy(load_task("seek"))
+    halfway.difficulty = 0.5  # a task that says so itself is still built at 1
+    training = JetbotEnv(halfway)
     try:
+        assert training.difficulty == 1.0 and halfway.difficulty == 0.5
         training.difficulty = 0.0
         assert training.task.difficulty == 0.0 and load_task("seek").difficulty == 1.0
         with pytest.raises(Exception, match=r"difficulty must be a number in \[0, 1\]"):

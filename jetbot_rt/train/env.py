@@ -59,8 +59,8 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
     ``module:Class``, an installed plugin's) or a ``Task``.
 
     ``difficulty`` (settable, also through a vector env's ``set_attr``): the task's
-    ``Task.difficulty`` for the scenes of the next resets; 1 (the task as evaluated) unless a
-    curriculum sets it.
+    ``Task.difficulty`` for the scenes of the next resets; 1 (the task as evaluated) unless
+    given here or set by a curriculum.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 30}
@@ -75,12 +75,14 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         model_max_speed: float | None = None,
         image_size: tuple[int, int] = (POLICY_IMAGE_SIZE, POLICY_IMAGE_SIZE),
         randomize: bool | None = None,
+        difficulty: float = 1.0,
     ) -> None:
         from jetbot_rt.sim.world import JetbotWorld  # pybullet: only when an env is built
 
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise UsageError(f"unknown render_mode {render_mode!r} (known: rgb_array)")
         self.task = load_task(task)
+        self.difficulty = difficulty  # 1 unless asked: whatever a task class says
         self.config = config or Config()
         self.render_mode = render_mode
         self.start_noise = start_noise
