@@ -89,6 +89,13 @@ OUT_OF_RANGE = {
     ("sim", "image_blur"): 0.5,
     ("sim", "image_brightness"): -2.0,
     ("sim", "image_contrast"): 5.0,
+    ("sim", "lens"): "fish-eye",
+    ("sim", "lens_focal"): 0.0,
+    ("sim", "lens_center"): [0.5, 0.9],
+    ("sim", "lens_k1"): 1.5,
+    ("sim", "lens_k2"): -1.5,
+    ("sim", "lens_k3"): 2.0,
+    ("sim", "lens_k4"): -2.0,
     ("randomize", "enabled"): None,  # true or false
     ("randomize", "wheel_gain"): [1.2, 0.8],
     ("randomize", "motor_gain"): [0.0, 1.0],
@@ -112,6 +119,9 @@ OUT_OF_RANGE = {
     ("randomize", "image_blur"): [0.0, 0.5],
     ("randomize", "image_brightness"): [-2.0, 0.1],
     ("randomize", "image_contrast"): [0.8, 4.0],
+    ("randomize", "lens_focal"): [0.4, 1.0],
+    ("randomize", "lens_k1"): [-0.6, 0.0],
+    ("randomize", "lens_k2"): [0.0, 0.6],
 }
 # Every duration and rate is bounded at both ends (unbounded, a 1e-10 Hz rate would crash
 # the loop thread, a 1e10 s timeout the watchdog's wait); TOML's inf and nan too.
