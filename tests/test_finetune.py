@@ -26,8 +26,7 @@ SEEK = str(bundled_policy_path("seek"))
 RATE_HZ = 30.0
 
 
-def drive_recording(path: Path, ticks: int = 24, size: int = 56, version_1: bool = False
-                    ) -> Path:
+def drive_recording(path: Path, ticks: int = 24, size: int = 56) -> Path:
     """What ``jetbot-rt drive --policy`` writes, through the real recorder: the policy drives
     the even ticks, the person the odd ones; the person steers left on bright frames and
     right on dark ones, which the policy does not."""
@@ -39,7 +38,7 @@ def drive_recording(path: Path, ticks: int = 24, size: int = 56, version_1: bool
         image = np.full((size, size, 3), 220 if bright else 30, np.uint8)
         image += rng.integers(0, 10, image.shape, dtype=np.uint8)
         human = tick % 2 == 1
-        extra = {} if version_1 else {
+        extra = {
             "driver": "human" if human else "policy",
             "human": ([-0.5, 0.5] if bright else [0.5, -0.5]) if human else None,
             "policy_mu": [0.9, 0.9]}
@@ -50,9 +49,6 @@ def drive_recording(path: Path, ticks: int = 24, size: int = 56, version_1: bool
         if human and tick == 1:
             recorder.event("takeover", driver="human", tick=tick)
     recorder.close({"reason": "test", "exit_code": 0}, timeout=None)
-    if version_1:
-        meta = json.loads((path / "meta.json").read_text())
-        (path / "meta.json").write_text(json.dumps({**meta, "version": 1}))
     return path
 
 
@@ -68,6 +64,24 @@ def rec(made, tmp_path) -> Path:
     return Path(shutil.copytree(made, tmp_path / "rec"))
 
 
+def test_the_human_ticks_with_a_command_are_the_labels(rec):
+    labels = read_labels([str(rec)], 56)
+    assert (labels.ticks, len(labels.labels), labels.takeovers) == (24, 12, 1)
+    bright = labels.frames.mean(axis=(1, 2, 3)) > 128
+    assert bright.any() and not bright.all()
+    assert np.array_equal(labels.labels[bright], np.tile([-0.5, 0.5], (bright.sum(), 1)))
+    assert np.array_equal(labels.labels[~bright], np.tile([0.5, -0.5], ((~bright).sum(), 1)))
+
+
+def test_the_bundled_onnx_is_read_into_the_trainers_network_with_its_own_outputs():
+    from jetbot_rt.train.finetune import start_from_onnx
+
+    start = start_from_onnx(SEEK)
+    assert start.task == "seek" and start.max_speed == 0.5
+    assert start.model.config.image_size == 56
+
+
+@pytest.mark.long
 def test_a_small_finetune_learns_the_persons_commands_and_keeps_the_runtime_contract(
         rec, tmp_path):
     summary = finetune(FinetuneArgs([str(rec)], SEEK, str(tmp_path / "out"), steps=25,
@@ -93,8 +107,15 @@ def test_the_simulators_share_is_collected_and_mixed_in(rec, tmp_path):
     assert summary["sim_frames"] == 120 and summary["sim_share"] == 0.5
 
 
-def test_an_old_recording_still_reads_and_has_no_labels(tmp_path):
-    rec = drive_recording(tmp_path / "rec", version_1=True)
+def test_an_old_recording_still_reads_and_has_no_labels(rec):
+    """Version 1: no drive keys in the ticks."""
+    meta = json.loads((rec / "meta.json").read_text())
+    (rec / "meta.json").write_text(json.dumps({**meta, "version": 1}))
+    lines = [json.loads(line) for line in (rec / "ticks.jsonl").read_text().splitlines()]
+    for record in lines:
+        for key in ("driver", "human", "policy_mu"):
+            record.pop(key, None)
+    (rec / "ticks.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
     with pytest.raises(UsageError, match="no human ticks with a command"):
         read_labels([str(rec)], 56)
 
