@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from jetbot_rt.calibration.fit import Data, fit, to_toml
-from jetbot_rt.calibration.intrinsics import board_png, calibrate
+from jetbot_rt.calibration.intrinsics import MIN_VIEWS, board_png, calibrate
 from jetbot_rt.calibration.intrinsics import to_toml as intrinsics_toml
 from jetbot_rt.calibration.measure import Geometry, MarkerMeter, marker_png
 from jetbot_rt.calibration.programme import Limits, Programme, duration
@@ -266,9 +266,10 @@ def camera_views(args: argparse.Namespace) -> tuple[list[np.ndarray], tuple[int,
         return views, (width, height), args.frames
     if not args.backend:
         raise UsageError("--camera: give --backend (sim or real) to take views, or --frames DIR")
-    if not 1 <= args.views <= 200 or not (math.isfinite(args.time_limit)
-                                          and 1 <= args.time_limit <= 3600):
-        raise UsageError("--views must be in [1, 200] and --time-limit in [1, 3600] s")
+    if not MIN_VIEWS <= args.views <= 200 or not (math.isfinite(args.time_limit)
+                                                  and 1 <= args.time_limit <= 3600):
+        raise UsageError(f"--views must be in [{MIN_VIEWS}, 200] and --time-limit in "
+                         "[1, 3600] s")
     config = load_config(args.config)
     size = CAMERA_FRAME_SIZE.get(args.backend, CAMERA_FRAME_SIZE["real"])
     if args.backend == "sim":
