@@ -18,20 +18,22 @@ from jetbot_rt.testing.pca9685_emulator import PCA9685Emulator
 class MonitoredRun:
     def __init__(self, root: Path, backend: str = "real", monitor: str = "0",
                  source: str = "gst:videotestsrc is-live=true pattern=ball",
-                 extra: tuple[str, ...] = ()) -> None:
+                 extra: tuple[str, ...] = (), command: str = "run",
+                 config_extra: str = "") -> None:
         self.root = root
         self.config = root / "robot.toml"
         # patient thresholds: on a loaded machine a camera's 0.15 s stall would end the run
         # (exit 3) before the browser has opened the page
         self.config.write_text(f'[camera]\nsource = "{source}"\nstart_timeout = 5\n'
                                "[motors]\ni2c_retries = 1\n"
-                               "[loop]\nmax_frame_age = 1.0\nwatchdog_timeout = 1.0\n")
+                               "[loop]\nmax_frame_age = 1.0\nwatchdog_timeout = 1.0\n"
+                               + config_extra)
         self.chip_file = root / "chip.json"
         self.chip = PCA9685Emulator(0x60, state_file=self.chip_file)
         env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(root / "run"))
         board = ["--board-emulator", str(self.chip_file)] if backend == "real" else []
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "jetbot_rt.cli", "run", "--backend", backend,
+            [sys.executable, "-m", "jetbot_rt.cli", command, "--backend", backend,
              "--config", str(self.config), "--monitor", monitor, "--duration", "60",
              *board, *extra],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)

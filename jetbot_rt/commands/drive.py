@@ -28,7 +28,7 @@ from jetbot_rt.runtime.policy import META_PREFIX
 from jetbot_rt.service import signals
 from jetbot_rt.teleop.hand import DEADMAN_S, MAX_DEADMAN_S, Arbiter, HandInput
 
-INPUTS = ("keyboard", "gamepad", "scripted")
+INPUTS = ("keyboard", "gamepad", "page", "scripted")
 DEFAULT_GAMEPAD = "/dev/input/js0"
 
 
@@ -40,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            "take-over key or button (default: none, the person drives)")
     parser.add_argument("--input", required=True, choices=INPUTS,
                         help="keyboard: the terminal on stdin (ssh -t works); gamepad: a Linux "
-                             "joystick device; scripted: the sim task's expert as the person")
+                             "joystick device; page: the monitor's page ([monitor] drive = "
+                             "true); scripted: the sim task's expert as the person")
     parser.add_argument("--deadman", type=float, default=DEADMAN_S,
                         help=f"seconds a hand command stays valid without a new key repeat "
                              f"or device event, at most {MAX_DEADMAN_S:g}")
@@ -73,6 +74,14 @@ class Inputs(Phase):
             from jetbot_rt.teleop.keyboard import KeyboardInput
 
             hand: HandInput = KeyboardInput(sys.stdin.fileno(), args.deadman)
+        elif args.input == "page":
+            from jetbot_rt.teleop.page import PageInput
+
+            server = rt.monitor.server
+            if server is None or not rt.config.monitor.drive:
+                raise UsageError("--input page drives from the monitor's page: it needs "
+                                 "--monitor (or [monitor] listen) and [monitor] drive = true")
+            hand = PageInput(server, args.deadman)
         elif args.input == "gamepad":
             from jetbot_rt.teleop.gamepad import GamepadInput
 

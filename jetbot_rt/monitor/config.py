@@ -67,6 +67,10 @@ class MonitorConfig:
     """The token a non-loopback monitor requires: read from this file when it exists (it must
     be a regular file nobody else may read or write, mode 0600), else generated at start and
     written here with mode 0600. Without it a generated token is only printed."""
+    drive: bool = False
+    """Let the page drive (``jetbot-rt drive --input page``, docs/DRIVE.md): hold-to-drive
+    buttons that ``POST /drive`` a command every 100 ms, under the same access rules as STOP
+    (the token off loopback). Off by default: the page is read-only but for STOP."""
     max_fps: float = field(default=15.0, metadata=within(1.0, 60.0, " Hz"))
     """The most frames (and state updates) a second each client is sent; a slower client gets
     fewer, counted as dropped."""

@@ -6,7 +6,8 @@ Routes: ``GET /`` (the page), ``/monitor.js``, ``/monitor.css`` (static files sh
 package, read once at start), ``GET /state`` (one JSON object), ``GET /frame.jpg?view=`` (the
 newest frame, ``prepared`` or ``raw``), ``GET /stream.mjpg?view=`` (MJPEG, the page's live
 image), ``GET /events`` (server-sent events: the state at up to ``max_fps``, then the end),
-``POST /stop``. Nothing else: no file is served by name, nothing is written, no CORS header.
+``POST /stop``; ``POST /drive`` only under ``jetbot-rt drive --input page`` with ``[monitor]
+drive = true``. Nothing else: no file is served by name, nothing is written, no CORS header.
 
 Why MJPEG and server-sent events: both are plain HTTP responses an ``<img>`` and an
 ``EventSource`` read with no code of ours, each frame or state replaces the last (a late one
@@ -131,6 +132,8 @@ class MonitorServer(ThreadingHTTPServer):
         self.address_family = socket.AF_INET6 if ":" in listen.host else socket.AF_INET
         self.view = view
         self.on_stop = on_stop
+        self.on_drive: Callable[[float, float], None] | None = None
+        """``jetbot-rt drive --input page`` sets it: ``POST /drive`` exists only then."""
         self.token = token
         self.loopback = listen.loopback
         self.interval = 1.0 / max_fps
@@ -354,8 +357,9 @@ class MonitorHandler(BaseHTTPRequestHandler):
             body, kind = server.files[url.path]
             return self._send(HTTPStatus.OK, body, kind)
         if url.path == "/state":
-            return self._send(HTTPStatus.OK, self._json(server.view.state(server.counts)),
-                              "application/json")
+            state = server.view.state(server.counts)
+            state["drive"] = server.on_drive is not None
+            return self._send(HTTPStatus.OK, self._json(state), "application/json")
         view = self._view(query)
         if url.path == "/frame.jpg" and view is not None:
             frame = server.view.jpeg(view)
@@ -373,17 +377,35 @@ class MonitorHandler(BaseHTTPRequestHandler):
         # a body (none is needed) is read within the request's bound, so that closing the
         # connection does not reset it before the client has the answer
         length = self.headers.get("Content-Length", "0").strip()
-        self.rfile.read(int(length) if length.isdigit() else MAX_REQUEST_BYTES + 1)
+        body = self.rfile.read(int(length) if length.isdigit() else MAX_REQUEST_BYTES + 1)
         if not self._allowed():
             return self._forbid()
-        if urlsplit(self.path).path != "/stop":
+        path = urlsplit(self.path).path
+        if path not in ("/stop", "/drive") or (path == "/drive" and self.server.on_drive is None):
             return self._send(HTTPStatus.NOT_FOUND, b"not found\n")
         origin = self.headers.get("Origin")
         if origin is not None and urlsplit(origin).netloc != self.headers.get("Host"):
             return self._forbid()  # a form on another site; the page's own POST passes
+        if path == "/drive":
+            return self._drive(body)
         peer = self.client_address[0]
         self.server.on_stop(f"stop from the monitor page ({peer})")
         self._send(HTTPStatus.OK, b"stopping\n")
+
+    def _drive(self, body: bytes) -> None:
+        """``{"left": L, "right": R}``, each a number in -1..1: a hand command for the deadman
+        time (the page repeats it while a button is held). Anything else: 400, nothing moves."""
+        try:
+            command = json.loads(body.decode("utf-8")) if len(body) <= 256 else None
+            left, right = (float(command[key]) for key in ("left", "right"))
+            if not (-1.0 <= left <= 1.0 and -1.0 <= right <= 1.0):
+                raise ValueError
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+            return self._send(HTTPStatus.BAD_REQUEST,
+                              b'{"left": L, "right": R} with L, R in -1..1\n')
+        assert self.server.on_drive is not None
+        self.server.on_drive(left, right)
+        self._send(HTTPStatus.OK, b"ok\n")
 
     def _token_login(self, given: str) -> None:
         if not tokens.matches(given, self.server.token or ""):

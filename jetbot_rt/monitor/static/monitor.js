@@ -117,3 +117,34 @@ $("stop").addEventListener("click", async () => {
     $("reason").textContent = "stop not confirmed (" + err.message + "): use jetbot-rt stop";
   }
 });
+
+// Hold-to-drive (jetbot-rt drive --input page, [monitor] drive = true): while a button is
+// held, POST /drive every 100 ms; each command is valid for the run's deadman (0.3 s at most),
+// so a released button, a hidden tab or a lost network stops the wheels within it.
+let driving = null;
+function release() {
+  if (driving !== null) clearInterval(driving);
+  driving = null;
+}
+function hold(mu) {
+  release();
+  const [left, right] = mu.split(",").map(Number);
+  const send = () => fetch("/drive", {
+    method: "POST", credentials: "same-origin", headers: { "Content-Type": "application/json" },
+    body: JSON.stringify({ left, right }),
+  }).catch(release);
+  send();
+  driving = setInterval(send, 100);
+}
+fetch("/state", { credentials: "same-origin" }).then((r) => r.json()).then((s) => {
+  if (!s.drive) return;
+  $("drive").hidden = false;
+  for (const button of document.querySelectorAll("#drive button")) {
+    button.addEventListener("pointerdown", (e) => { e.preventDefault(); hold(button.dataset.mu); });
+    for (const name of ["pointerup", "pointercancel", "pointerleave"]) {
+      button.addEventListener(name, release);
+    }
+  }
+  window.addEventListener("blur", release);
+  document.addEventListener("visibilitychange", release);
+}).catch(() => {});
