@@ -59,6 +59,7 @@ OUT_OF_RANGE = {
     ("monitor", "listen"): "robot.local:8080",
     ("monitor", "token_file"): "",
     ("monitor", "max_fps"): 0,
+    ("monitor", "drive"): None,  # true or false
     ("sim", "physics_hz"): -240.0,
     ("sim", "motor_gain"): 0,
     ("sim", "motor_tau"): -0.05,
