@@ -49,6 +49,8 @@ def main() -> int:
     parser.add_argument("--only", nargs="*", default=None, help="condition names to run")
     parser.add_argument("--no-baselines", action="store_true")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--resume", action="store_true",
+                        help="keep the results already in --out, run only the missing ones")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     train = [str(Path(sys.executable).with_name("jetbot-train"))]
@@ -60,6 +62,10 @@ def main() -> int:
     for path in files:
         row = {"condition": path.stem, "held_out": reason(path)}
         for run, extra in runs.items():
+            done_file = args.out / f"{path.stem}-{run}.json"
+            if args.resume and done_file.exists():  # an earlier invocation's, same episodes
+                row[run] = json.loads(done_file.read_text())["success_rate"]
+                continue
             command = [*train, "eval", "--task", args.task, "--episodes", str(args.episodes),
                        "--num-envs", str(args.num_envs), "--seed", str(args.seed),
                        "--config", str(path), "--json", "--no-progress", *extra]
@@ -70,7 +76,7 @@ def main() -> int:
                 print(f"{path.stem} {run}: exit {done.returncode}: {done.stderr.strip()}",
                       file=sys.stderr)
                 return 1
-            (args.out / f"{path.stem}-{run}.json").write_text(done.stdout)
+            done_file.write_text(done.stdout)
             row[run] = json.loads(done.stdout)["success_rate"]
         rows.append(row)
         print(row, flush=True)
