@@ -73,6 +73,20 @@ def test_the_human_ticks_with_a_command_are_the_labels(rec):
     assert np.array_equal(labels.labels[~bright], np.tile([0.5, -0.5], ((~bright).sum(), 1)))
 
 
+def test_a_label_delay_pairs_each_frame_with_the_command_given_that_many_ticks_later(rec):
+    lines = [json.loads(line) for line in (rec / "ticks.jsonl").read_text().splitlines()]
+    for record in lines:
+        if "tick" in record:
+            record.update(driver="human", human=[record["tick"] / 100, 0.0])
+        if record.get("tick") == 10:
+            record.update(driver="policy")  # handed back: no label reaches across it
+    (rec / "ticks.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    labels = read_labels([str(rec)], 56, label_delay=2)
+    # the frames of ticks 1-7 and 11-22, labelled with the commands of ticks 3-9 and 13-24
+    later = [t / 100 for t in [*range(3, 10), *range(13, 25)]]
+    assert labels.labels[:, 0].tolist() == pytest.approx(later)
+
+
 def test_the_bundled_onnx_is_read_into_the_trainers_network_with_its_own_outputs():
     from jetbot_rt.train.finetune import start_from_onnx
 

@@ -171,6 +171,9 @@ def _add_finetune_parser(sub: Any) -> None:
                           help="simulator frames collected (labelled by the task's expert)")
     finetune.add_argument("--stop-weight", type=float, default=default.stop_weight,
                           help="weight of stop labels (both wheels <= 0) in the loss")
+    finetune.add_argument("--label-delay", type=int, default=default.label_delay,
+                          help="ticks between a frame and the person's command that labels it "
+                               "(their reaction time: 6 at 30 Hz is 0.2 s)")
     finetune.add_argument("--seed", type=int, default=default.seed, help="random seed")
 
 
@@ -298,7 +301,8 @@ def _finetune(args: argparse.Namespace, argv: list[str]) -> int:
         config=load_config(args.config) if args.config else None,
         holdout=tuple(args.holdout), steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.learning_rate, sim_share=args.sim_share,
-        sim_frames=args.sim_frames, stop_weight=args.stop_weight, seed=args.seed))
+        sim_frames=args.sim_frames, stop_weight=args.stop_weight,
+        label_delay=args.label_delay, seed=args.seed))
     before, after = summary["action_error_before"], summary["action_error_after"]
     line = (f"fine-tuned on {summary['human_ticks']} human ticks ({summary['takeovers']} "
             f"takeovers) and {summary['sim_frames']} sim frames in {summary['wall_s']:.0f} s; "

@@ -27,6 +27,7 @@ error on their human ticks, before and after.
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import time
@@ -65,13 +66,15 @@ class FinetuneArgs:
     sim_frames: int = 4000
     photometric_jitter: float = 0.3
     stop_weight: float = 4.0
+    label_delay: int = 0
+    """Ticks between a frame and the person's command that labels it (their reaction)."""
     seed: int = 0
     torch_threads: int | None = None
     """Threads torch trains with (None: its default, one per core)."""
 
     def validate(self) -> None:
-        for name in ("steps", "batch_size", "sim_frames"):
-            if getattr(self, name) < (0 if name == "sim_frames" else 1):
+        for name in ("steps", "batch_size", "sim_frames", "label_delay"):
+            if getattr(self, name) < (0 if name in ("sim_frames", "label_delay") else 1):
                 raise OptionError(name, f"must be positive, got {getattr(self, name)}")
         if not 0.0 <= self.sim_share < 1.0:
             raise OptionError("sim_share", f"must be in [0, 1), got {self.sim_share:g}")
@@ -190,14 +193,19 @@ class Labels:
     takeovers: int
 
 
-def read_labels(paths: list[str] | tuple[str, ...], image_size: int) -> Labels:
-    """The frames of the human ticks with a command in force, and the commands."""
+def read_labels(paths: list[str] | tuple[str, ...], image_size: int,
+                label_delay: int = 0) -> Labels:
+    """The frames of the human ticks with a command in force, and the commands. With
+    ``label_delay`` = k, a frame's label is the command the person gave k ticks later (a
+    person answers what they saw a reaction time ago); only where those k + 1 ticks follow
+    each other and were all driven by hand."""
     from jetbot_rt.recording.reader import Recording
 
     frames: list[np.ndarray] = []
     labels: list[list[float]] = []
     ticks = takeovers = 0
     for path in paths:
+        seen: collections.deque[tuple[int, np.ndarray]] = collections.deque()
         recording = Recording.open(path)
         if recording.frames_path is None:
             raise UsageError(f"{shown(path)}: a telemetry file, not a recording directory "
@@ -210,10 +218,18 @@ def read_labels(paths: list[str] | tuple[str, ...], image_size: int) -> Labels:
         for record, image in recording.ticks_with_frames():
             ticks += 1
             human = record.get("human")
-            if record.get("driver") != "human" or human is None or image is None:
+            tick = int(record["tick"])
+            if record.get("driver") != "human" or human is None:
+                seen.clear()
                 continue
-            frames.append(image)
-            labels.append(human)
+            if seen and seen[-1][0] != tick - 1:
+                seen.clear()
+            seen.append((tick, image))
+            if len(seen) > label_delay:
+                _, seen_image = seen.popleft()
+                if seen_image is not None:
+                    frames.append(seen_image)
+                    labels.append(human)
     if not frames:
         raise UsageError(f"no human ticks with a command and a frame in {len(paths)} "
                          "recording(s) (record with jetbot-rt drive; with --policy, take "
@@ -339,8 +355,8 @@ def _finetune(args: FinetuneArgs, began: float) -> dict[str, Any]:
         start = load_start(args.init)
         task = args.task or file_task(start.task, args.init)
         size = start.model.config.image_size
-        person = read_labels(args.recordings, size)
-        held = read_labels(args.holdout, size) if args.holdout else None
+        person = read_labels(args.recordings, size, args.label_delay)
+        held = read_labels(args.holdout, size, args.label_delay) if args.holdout else None
         before = {"train": action_error(start.model, person)}
         if held is not None:
             before["holdout"] = action_error(start.model, held)
@@ -364,6 +380,7 @@ def _finetune(args: FinetuneArgs, began: float) -> dict[str, Any]:
             "takeovers": person.takeovers, "sim_frames": len(sim) if sim is not None else 0,
             "sim_share": args.sim_share, "steps": args.steps, "batch_size": args.batch_size,
             "learning_rate": args.learning_rate, "stop_weight": args.stop_weight,
+            "label_delay": args.label_delay,
             "first_loss": round(losses[0], 5),
             "last_loss": round(float(np.mean(losses[-50:])), 5),
             "action_error_before": {k: round(v, 4) for k, v in before.items()},
