@@ -99,7 +99,7 @@ def test_the_bundled_onnx_is_read_into_the_trainers_network_with_its_own_outputs
 def test_a_small_finetune_learns_the_persons_commands_and_keeps_the_runtime_contract(
         rec, tmp_path):
     summary = finetune(FinetuneArgs([str(rec)], SEEK, str(tmp_path / "out"), steps=25,
-                                    batch_size=8, learning_rate=1e-3, sim_share=0.0,
+                                    batch_size=8, learning_rate=1e-3, sim_share=0.0, label_delay=0,
                                     torch_threads=1,
                                     holdout=(str(rec),)))
     assert summary["human_ticks"] == 12 and summary["ticks_read"] == 24
@@ -117,7 +117,7 @@ def test_a_small_finetune_learns_the_persons_commands_and_keeps_the_runtime_cont
 @pytest.mark.long
 def test_the_simulators_share_is_collected_and_mixed_in(rec, tmp_path):
     summary = finetune(FinetuneArgs([str(rec)], SEEK, str(tmp_path / "out"), steps=20,
-                                    batch_size=8, sim_frames=120))
+                                    batch_size=8, sim_frames=120, label_delay=0))
     assert summary["sim_frames"] == 120 and summary["sim_share"] == 0.5
 
 

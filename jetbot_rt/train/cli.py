@@ -173,7 +173,7 @@ def _add_finetune_parser(sub: Any) -> None:
                           help="weight of stop labels (both wheels <= 0) in the loss")
     finetune.add_argument("--label-delay", type=int, default=default.label_delay,
                           help="ticks between a frame and the person's command that labels it "
-                               "(their reaction time: 6 at 30 Hz is 0.2 s)")
+                               "(their reaction time: 6 at 30 Hz is 0.2 s; 0: the same tick)")
     finetune.add_argument("--seed", type=int, default=default.seed, help="random seed")
 
 
