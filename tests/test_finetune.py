@@ -118,7 +118,7 @@ def test_a_small_finetune_learns_the_persons_commands_and_keeps_the_runtime_cont
 def test_the_simulators_share_is_collected_and_mixed_in(rec, tmp_path):
     summary = finetune(FinetuneArgs([str(rec)], SEEK, str(tmp_path / "out"), steps=20,
                                     batch_size=8, sim_frames=120, label_delay=0))
-    assert summary["sim_frames"] == 120 and summary["sim_share"] == 0.5
+    assert summary["sim_frames"] == 120 and summary["sim_share"] == 0.7
 
 
 def test_an_old_recording_still_reads_and_has_no_labels(rec):

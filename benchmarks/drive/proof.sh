@@ -26,17 +26,27 @@ evaluate() {  # out policy [eval args]
 # round 1: takeovers of the bundled policy (3 x 200 s) and hand driving (3 x 110 s)
 for s in 1 2 3; do drive "$s" 200 "takeover_$s" --policy "$seek" & done; wait
 for s in 4 5 6; do drive "$s" 110 "hand_$s" & done; wait
-ft() { out=$1; shift; jetbot-train finetune --init "$seek" --out "$out" "$@"; }
-ft ft_all --recordings takeover_1 takeover_2 takeover_3
-ft ft_hand --recordings hand_4 hand_5 hand_6 --holdout takeover_3
-ft ft_mix --recordings hand_4 hand_5 hand_6 takeover_1 --holdout takeover_3
-ft ft_mix_seed1 --recordings hand_4 hand_5 hand_6 takeover_1 --holdout takeover_3 --seed 1
-ft ft_mix10 --recordings hand_4 hand_5 hand_6 takeover_1 takeover_2 --holdout takeover_3
-# round 2 (HG-DAgger): takeovers of the fine-tuned policy, with the hand drives
-for s in 7 8 9; do drive "$s" 90 "round2_$s" --policy ft_mix/policy.onnx & done; wait
-ft ft_round2 --recordings hand_4 hand_5 hand_6 round2_7 round2_8 round2_9 --holdout takeover_3
+ft() { out=$1; shift; jetbot-train finetune --init "$seek" --out "$out" --sim-share 0.5 "$@"; }
+for d in 0 6; do  # --label-delay: the frame of the same tick, or of 0.2 s before
+    ft "ft_takeover1_d$d" --recordings takeover_1 --holdout takeover_3 --label-delay $d
+    ft "ft_all_d$d" --recordings takeover_1 takeover_2 takeover_3 --label-delay $d
+    ft "ft_hand1_d$d" --recordings hand_4 --holdout takeover_3 --label-delay $d
+    ft "ft_hand_d$d" --recordings hand_4 hand_5 hand_6 --holdout takeover_3 --label-delay $d
+    ft "ft_mix_d$d" --recordings hand_4 hand_5 hand_6 takeover_1 --holdout takeover_3 \
+        --label-delay $d
+    ft "ft_mix_d${d}_seed1" --recordings hand_4 hand_5 hand_6 takeover_1 --holdout takeover_3 \
+        --label-delay $d --seed 1
+    ft "ft_mix10_d$d" --recordings hand_4 hand_5 hand_6 takeover_1 takeover_2 \
+        --holdout takeover_3 --label-delay $d
+done
+ft ft_mix_d6_s07 --recordings hand_4 hand_5 hand_6 takeover_1 --holdout takeover_3 \
+    --sim-share 0.7
+# round 2 (HG-DAgger): takeovers of the delay-0 mix's policy, with the hand drives
+for s in 7 8 9; do drive "$s" 90 "round2_$s" --policy ft_mix_d0/policy.onnx & done; wait
+ft ft_round2 --recordings hand_4 hand_5 hand_6 round2_7 round2_8 round2_9 --holdout takeover_3 \
+    --label-delay 0
 ft ft_round2_sw1 --recordings hand_4 hand_5 hand_6 round2_7 round2_8 round2_9 \
-    --holdout takeover_3 --stop-weight 1
+    --holdout takeover_3 --label-delay 0 --stop-weight 1
 
 for p in "$seek" ft_*/policy.onnx; do
     name=$(basename "$(dirname "$p")")

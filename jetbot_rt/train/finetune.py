@@ -10,7 +10,7 @@ policy erred, and the aggregate of corrections is the data); without, the whole 
 The network starts from ``--init``: a checkpoint of ``jetbot-train train`` or a policy ONNX
 this trainer exported (its weights are read from the file's initializers and checked against
 the file's own outputs). Each batch mixes the recorded frames with frames of the simulator's
-training randomization (``--sim-share``, default half): a few minutes of recorded frames alone
+training randomization (``--sim-share``, default 70 %): a few minutes of recorded frames alone
 would pull the network to one room and one look, and what the simulator taught (other floors,
 lights, scenes) would be forgotten; with the mix it is kept (docs/DRIVE.md measures how much).
 The simulator's frames are collected first: episodes driven by the starting network or, one
@@ -62,7 +62,9 @@ class FinetuneArgs:
     steps: int = 2000
     batch_size: int = 64
     learning_rate: float = 2e-4
-    sim_share: float = 0.5
+    sim_share: float = 0.7
+    """Share of each batch from the simulator. Measured (docs/DRIVE.md): 0.5 kept 83 % of the
+    randomized simulator's 97 %, 0.7 kept 86 %, both 100 % in the hidden world."""
     sim_frames: int = 4000
     photometric_jitter: float = 0.3
     stop_weight: float = 4.0
