@@ -135,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_finetune_parser(sub: Any) -> None:
-    from jetbot_rt.train.finetune import FinetuneArgs
+    from jetbot_rt.train.finetune_args import FinetuneArgs
     from jetbot_rt.train.flags import positive_int
 
     default = FinetuneArgs([], "", "")
@@ -294,7 +294,8 @@ def _sweep(args: argparse.Namespace, argv: list[str]) -> int:
 
 def _finetune(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.config.sections import load_config
-    from jetbot_rt.train.finetune import FinetuneArgs, finetune
+    from jetbot_rt.train.finetune import finetune
+    from jetbot_rt.train.finetune_args import FinetuneArgs
 
     summary = finetune(FinetuneArgs(
         recordings=args.recordings, init=args.init, out=args.out, task=args.task,
