@@ -3,21 +3,42 @@
 # randomized (seeds 10000+), held out (seeds 20000+), the five robustness conditions, and the
 # blind baselines on the randomized episodes (blank camera, constant forward; 50 each).
 # Writes OUT/<name>.json and prints one line: name=success ...
-# usage: [TASK=seek] [NUM_ENVS=2] benchmarks/seek_conditions/eval_all.sh POLICY.onnx OUT_DIR [EPISODES]
+# SIM_LINES: [sim] lines added to every evaluation (e.g. SIM_LINES='lens = "fisheye"' for a
+# policy trained through the fisheye); the latency_250ms condition runs too when it is set.
+# usage: [TASK=seek] [NUM_ENVS=2] [SIM_LINES=...] benchmarks/seek_conditions/eval_all.sh POLICY.onnx OUT_DIR [EPISODES]
 set -eu
 policy=$1; out=$2; episodes=${3:-100}; train=${JETBOT_TRAIN:-jetbot-train}
 task=${TASK:-seek}; num_envs=${NUM_ENVS:-2}
 here=$(dirname "$0")
 mkdir -p "$out"
-run() {  # name, then eval flags
+sim_lines=${SIM_LINES:-}
+with_sim_lines() {  # a condition file (or none) with SIM_LINES in its [sim] table: a new file
+  local file="$out/.config-$(basename "${1:-base.toml}")"
+  if [ -n "${1:-}" ] && grep -q '^\[sim\]' "$1"; then
+    awk -v add="$sim_lines" '{print} /^\[sim\]/{print add}' "$1" > "$file"
+  else
+    { printf '[sim]\n%s\n' "$sim_lines"; [ -n "${1:-}" ] && cat "$1"; true; } > "$file"
+  fi
+  echo "$file"
+}
+run() {  # name, then eval flags (a --config given last, if any)
   local name=$1; shift
+  if [ -n "$sim_lines" ]; then
+    local args=() config=""
+    while [ $# -gt 0 ]; do
+      if [ "$1" = --config ]; then config=$2; shift 2; else args+=("$1"); shift; fi
+    done
+    set -- "${args[@]}" --config "$(with_sim_lines "$config")"
+  fi
   $train eval --task "$task" --policy "$policy" --episodes "$episodes" --num-envs "$num_envs" \
     --json --no-progress "$@" > "$out/$name.json"
   printf '%s=%s ' "$name" "$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["success_rate"])' "$out/$name.json")"
 }
 run randomized --seed 10000
 run heldout --seed 20000
-for condition in weak_right_wheel weak_left_wheel deadband latency floor_light; do
+conditions="weak_right_wheel weak_left_wheel deadband latency floor_light"
+[ -n "$sim_lines" ] && conditions="$conditions latency_250ms"
+for condition in $conditions; do
   run "$condition" --config "$here/$condition.toml"
 done
 half=$(( (episodes + 1) / 2 ))
