@@ -90,14 +90,15 @@ def test_every_ppo_field_is_a_flag_and_a_train_table_key(tmp_path):
     import dataclasses
 
     from jetbot_rt.train.cli import build_parser
-    from jetbot_rt.train.flags import overrides
+    from jetbot_rt.train.flags import FLAG_NAMES, overrides
     from jetbot_rt.train.hyperparams import read_config_file
 
     parser = build_parser()
     help_text = parser._subparsers._group_actions[0].choices["train"].format_help()
     for spec in dataclasses.fields(PPOArgs):
         if spec.name not in ("task", "config", "model"):
-            assert "--" + spec.name.replace("_", "-") in help_text, spec.name
+            flag = FLAG_NAMES.get(spec.name, "--" + spec.name.replace("_", "-"))
+            assert flag in help_text, spec.name
     for spec in dataclasses.fields(ModelConfig):
         assert "--model-" + spec.name.replace("_", "-") in help_text, spec.name
     toml = tmp_path / "train.toml"
