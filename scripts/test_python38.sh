@@ -33,7 +33,8 @@ robot_tests=(
     tests/test_check.py tests/test_stop.py tests/test_real_backend_e2e.py
     tests/test_runtime_errors.py tests/test_gst_camera.py tests/test_fault_input.py
     tests/test_byo_policy.py tests/test_monitor.py tests/test_monitor_run.py
-    tests/test_console_lines.py tests/test_board_record.py
+    tests/test_console_lines.py tests/test_board_record.py tests/test_teleop.py
+    tests/test_drive_page.py
 )
 "$venv/bin/python" -m pytest -q -p no:cacheprovider "${robot_tests[@]}" "$@"
 
