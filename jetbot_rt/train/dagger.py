@@ -129,7 +129,7 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
 
 
 def collect(envs: VectorEnv, model: ActorCritic, expert: Any, data: Dataset,
-            args: DAggerArgs, iteration: int, bar: tqdm) -> dict[str, Any]:
+            args: DAggerArgs, iteration: int) -> dict[str, Any]:
     """Roll out one iteration in the env workers (``dagger_sampler``); add every frame of
     their finished episodes with its label."""
     beta = 1.0 if iteration == 0 else args.beta * 0.5 ** (iteration - 1)
@@ -146,7 +146,6 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Any, data: Dataset,
         steps += len(result["labels"])
         for by_expert, success in result["outcomes"]:
             outcomes[by_expert].append(float(success))
-    bar.update(steps)
     student, teacher = outcomes[False], outcomes[True]
     return {"beta": round(beta, 4), "episodes": len(student) + len(teacher), "steps": steps,
             "success_rate": round(float(np.mean(student)), 3) if student else "",
@@ -210,14 +209,14 @@ class _Run:
             send(self.envs, self.schedule.difficulty)
         return self.envs
 
-    def iteration(self, data: Dataset, bar: tqdm) -> dict[str, Any]:
+    def iteration(self, data: Dataset) -> dict[str, Any]:
         """Collect an iteration's episodes in the workers, regress on the aggregate; the
         metrics row."""
         options, progress = self.options, self.progress
         assert self.envs is not None
         torch.set_num_threads(1)
         began = time.perf_counter()
-        row = collect(self.envs, self.model, self.expert, data, options, progress.update, bar)
+        row = collect(self.envs, self.model, self.expert, data, options, progress.update)
         steps, student = row.pop("steps"), row.pop("student_successes")
         torch.set_num_threads(options.torch_threads)
         for group in self.optimizer.param_groups:
@@ -255,15 +254,18 @@ def train(options: DAggerArgs) -> dict[str, Any]:
 
 def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
     progress = run.progress
-    total = options.iterations * options.steps_per_iteration
-    bar = tqdm(total=total, initial=min(progress.global_step, total),
-               disable=not options.progress, unit="step", dynamic_ncols=True)
+    # Counted in iterations: an iteration collects whole episodes, so its env steps overshoot
+    # steps_per_iteration (a bar of env steps ended at 130 720 of 120 000 on seek).
+    bar = tqdm(total=options.iterations, initial=min(progress.update, options.iterations),
+               disable=not options.progress, unit="it", dynamic_ncols=True)
     interrupted = False
     try:  # from the workers' start on, Ctrl-C saves and prints the --resume command
         data = Dataset(run.start_envs().single_observation_space.shape)
         while progress.update < options.iterations:
-            row = run.iteration(data, bar)
-            bar.set_postfix(succ=row["success_rate"], loss=row["loss"], refresh=False)
+            row = run.iteration(data)
+            bar.update(1)
+            bar.set_postfix(steps=progress.global_step, succ=row["success_rate"],
+                            loss=row["loss"], refresh=False)
             run.save()
     except KeyboardInterrupt:
         interrupted = True
