@@ -397,7 +397,10 @@ class MonitorHandler(BaseHTTPRequestHandler):
         time (the page repeats it while a button is held). Anything else: 400, nothing moves."""
         try:
             command = json.loads(body.decode("utf-8")) if len(body) <= 256 else None
-            left, right = (float(command[key]) for key in ("left", "right"))
+            given = [command[key] for key in ("left", "right")]
+            if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in given):
+                raise TypeError  # true, "1": not a number, though float() takes them
+            left, right = (float(v) for v in given)
             if not (-1.0 <= left <= 1.0 and -1.0 <= right <= 1.0):
                 raise ValueError
         except (ValueError, TypeError, KeyError, UnicodeDecodeError):

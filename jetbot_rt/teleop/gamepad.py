@@ -24,6 +24,7 @@ the link (the Bluetooth supervision timeout, seconds); until then its last state
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import select
 import stat
@@ -40,6 +41,9 @@ JS_EVENT_BUTTON = 0x01
 JS_EVENT_AXIS = 0x02
 JS_EVENT_INIT = 0x80
 AXIS_FULL = 32767.0
+JSIOCGVERSION = 0x80046A01
+"""``_IOR('j', 0x01, __u32)``: every joystick device answers it; /dev/zero, a tty or an evdev
+node (``/dev/input/eventN``, 24-byte records that would read as garbage ``js_event``s) do not."""
 POLL_S = 0.05
 DEAD_ZONE = 0.08
 """Stick values closer to the centre than this (a fraction of full travel) are zero."""
@@ -55,6 +59,14 @@ class GamepadMap:
 
 def _shaped(value: float) -> float:
     return 0.0 if abs(value) < DEAD_ZONE else max(-1.0, min(1.0, value))
+
+
+def _is_joystick(fd: int) -> bool:
+    try:
+        fcntl.ioctl(fd, JSIOCGVERSION, b"\0" * 4)
+    except OSError:
+        return False
+    return True
 
 
 class GamepadInput(HandInput):
@@ -75,6 +87,10 @@ class GamepadInput(HandInput):
             os.close(fd)
             raise UsageError(f"--gamepad-device {path}: not a joystick device (a character "
                              "device such as /dev/input/js0)")
+        if stat.S_ISCHR(mode) and not _is_joystick(fd):
+            os.close(fd)
+            raise UsageError(f"--gamepad-device {path}: a character device that is not a "
+                             "joystick (the kernel's joystick API: /dev/input/jsN, not eventN)")
         self.fd = fd
         self.axes: dict[int, float] = {}
         self.buttons: dict[int, bool] = {}
