@@ -1,12 +1,18 @@
 """Hostile input to ``jetbot-rt drive``, found by an adversarial review: a ``--gamepad-device``
 that is a character device but no joystick (``/dev/zero``, an evdev node) is refused before
 anything moves, and ``POST /drive`` takes JSON numbers only (``true`` or ``"1"`` would pass
-``float()``)."""
+``float()``); on a loopback monitor (no token) only the runtime's own user (or root) may
+``POST /drive``, not every local account."""
 
 from __future__ import annotations
 
 import http.client
+import os
+import shutil
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
 
 import pytest
 
@@ -25,30 +31,52 @@ def test_a_character_device_that_is_no_joystick_is_refused_as_a_gamepad(device):
         GamepadInput(device)
 
 
-def test_the_page_drives_only_on_json_numbers_in_range():
+@pytest.fixture
+def page() -> Iterator[tuple[int, list[tuple[float, float]]]]:
+    """A loopback monitor (no token) with ``POST /drive``: its port and what it drove."""
     server = MonitorServer(Listen("127.0.0.1", 0), RunView(SafeStopLatch(), LoopStats(), 30.0,
                                                            time.monotonic()),
                            lambda _reason: None, token=None)
     driven: list[tuple[float, float]] = []
     server.on_drive = lambda left, right: driven.append((left, right))
     server.start()
-    port = server.server_address[1]
-
-    def post(body: bytes) -> int:
-        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
-        try:
-            conn.request("POST", "/drive", body=body)
-            return conn.getresponse().status
-        finally:
-            conn.close()
-
     try:
-        for body in (b'{"left": true, "right": true}', b'{"left": "1", "right": "0.5"}',
-                     b'{"left": null, "right": 0}', b'{"left": [1], "right": 0}',
-                     b'{"left": -1.5, "right": 0}', b'"left"'):
-            assert post(body) == 400, body
-        assert not driven
-        assert post(b'{"left": 1, "right": -0.5}') == 200
-        assert driven == [(1.0, -0.5)]
+        yield server.server_address[1], driven
     finally:
         server.close(linger=0)
+
+
+def post(port: int, body: bytes) -> int:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        conn.request("POST", "/drive", body=body)
+        return conn.getresponse().status
+    finally:
+        conn.close()
+
+
+def test_the_page_drives_only_on_json_numbers_in_range(page):
+    port, driven = page
+    for body in (b'{"left": true, "right": true}', b'{"left": "1", "right": "0.5"}',
+                 b'{"left": null, "right": 0}', b'{"left": [1], "right": 0}',
+                 b'{"left": -1.5, "right": 0}', b'"left"'):
+        assert post(port, body) == 400, body
+    assert not driven
+    assert post(port, b'{"left": 1, "right": -0.5}') == 200
+    assert driven == [(1.0, -0.5)]
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None,
+                    reason="needs root and setpriv to post as another user")
+def test_another_local_user_cannot_drive_through_a_loopback_page(page):
+    port, driven = page
+    script = ("import http.client as h, sys; "
+              "c = h.HTTPConnection('127.0.0.1', int(sys.argv[1]), timeout=10); "
+              "c.request('POST', '/drive', body=b'{\"left\": 1, \"right\": 1}'); "
+              "print(c.getresponse().status)")
+    other = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups",
+                            sys.executable, "-c", script, str(port)],
+                           capture_output=True, text=True, timeout=30, cwd="/")
+    assert other.stdout.strip() == "403", other.stderr
+    assert not driven
+    assert post(port, b'{"left": 1, "right": 1}') == 200 and driven == [(1.0, 1.0)]

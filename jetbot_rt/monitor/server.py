@@ -312,6 +312,13 @@ class MonitorHandler(BaseHTTPRequestHandler):
             name = host[1:].split("]", 1)[0]
         return name in LOOPBACK_NAMES
 
+    def _own_user(self) -> bool:
+        from jetbot_rt.monitor.peer import peer_uid, trusted_uids
+
+        uid = peer_uid(self.server.address_family, self.client_address,
+                       self.connection.getsockname())
+        return uid is not None and uid in trusted_uids()
+
     def _forbid(self) -> None:
         self.server.count("forbidden")
         self._send(HTTPStatus.FORBIDDEN, b"forbidden\n")
@@ -387,6 +394,8 @@ class MonitorHandler(BaseHTTPRequestHandler):
         if origin is not None and urlsplit(origin).netloc != self.headers.get("Host"):
             return self._forbid()  # a form on another site; the page's own POST passes
         if path == "/drive":
+            if self.server.token is None and not self._own_user():
+                return self._forbid()  # no token on loopback: another local account
             return self._drive(body)
         peer = self.client_address[0]
         self.server.on_stop(f"stop from the monitor page ({peer})")
