@@ -1,15 +1,16 @@
 """What a policy looks at: occlusion saliency over frames of the held-out looks and of training.
 
 For each held-out appearance condition (benchmarks/appearance_conditions/*.toml) and a few
-draws of the training randomization, the frame the policy sees (its input size) where the
-goal is in view (the task's expert drives from the episode's start until the goal's bearing is
-inside ``--bearing`` degrees), and beside it the occlusion map: a grey patch (``--patch``
-pixels, the blank ablation's grey) slides over the frame in steps of ``--stride``; each pixel
-gets the mean over the patches that cover it of ``|mu_left - mu_left'| + |mu_right -
-mu_right'|``, the change of both wheel commands. Everything runs through onnxruntime (the
-runtime's ``OnnxPolicy``: any model the runtime takes, no torch). Each tile names the
-condition, the commands ``mu`` and the share of the map's mass on the red pixels of the frame
-and within half a patch of them (``near red``, against the share of the frame that is).
+draws of the training randomization, two frames the policy sees (at its input size), the
+task's expert driving from the episode's start: the first with the goal's bearing inside
+``--bearing`` degrees, and the first nearer than ``--near`` m (where seek must stop; each
+tile says the distance). Beside each, the occlusion map: a grey patch (``--patch`` pixels,
+the blank ablation's grey) slides over the frame in steps of ``--stride``; each pixel gets
+the mean over the patches covering it of ``|mu_left - mu_left'| + |mu_right - mu_right'|``,
+the change of both wheel commands. Everything runs through onnxruntime (the runtime's
+``OnnxPolicy``: any model the runtime takes, no torch). Each tile names the condition, the
+commands ``mu`` and the share of the map's mass within half a patch of the frame's red pixels
+(``near red``, against the share of the frame that is).
 
 Run:
   .venv/bin/python benchmarks/plot_saliency.py                        # the bundled seek.onnx
@@ -98,27 +99,31 @@ def red_mask(frame: np.ndarray, grow: int = 0) -> np.ndarray:
     return red
 
 
-def moments(env: Any, seed: int, expert: Any, bearing_deg: float,
-            near: float, max_steps: int = 300) -> list[np.ndarray]:
-    """Two frames of the episode ``seed``, the task's expert driving: the first with the goal
-    within ``bearing_deg`` of the heading, and the first nearer than ``near`` m (the approach
-    and the stop, where a seek episode fails most). The last frame stands in for one never seen."""
+def moments(env: Any, seed: int, expert: Any, bearing_deg: float, near: float,
+            max_steps: int | None = None) -> list[tuple[np.ndarray, float]]:
+    """Two (frame, distance to the goal in m) of the episode ``seed``, the task's expert
+    driving: the first frame with the goal within ``bearing_deg`` of the heading, and the
+    first nearer than ``near`` m (the stop, where a seek episode fails most) or, when the
+    episode never comes that near, its nearest."""
     obs, info = env.reset(seed=seed)
-    frames: list[np.ndarray] = []
-    for _ in range(max_steps):
+    seen: list[tuple[np.ndarray, float]] = []
+    nearest: tuple[np.ndarray, float] = (obs, math.inf)
+    for _ in range(max_steps or env.task.episode_steps):
         x, y, yaw = (float(v) for v in info["pose"])
         gx, gy = (float(v) for v in info["goal_xy"])
         error = math.atan2(gy - y, gx - x) - yaw
-        ahead = abs(math.degrees(math.atan2(math.sin(error), math.cos(error)))) < bearing_deg
-        if not frames and ahead:
-            frames.append(obs)
-        if frames and math.hypot(gx - x, gy - y) < near:
-            frames.append(obs)
+        distance = math.hypot(gx - x, gy - y)
+        if not seen and abs(math.degrees(math.atan2(math.sin(error), math.cos(error)))) \
+                < bearing_deg:
+            seen.append((obs, distance))
+        if distance < nearest[1]:
+            nearest = (obs, distance)
+        if seen and distance < near:
             break
         obs, _, terminated, truncated, info = env.step(expert.label(info))
         if terminated or truncated:
             break
-    return [*frames, obs, obs][:2]
+    return [*seen, nearest, nearest][:2]
 
 
 def merged(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -151,8 +156,8 @@ def tiles(args: argparse.Namespace, policy: Any) -> list[tuple[str, np.ndarray]]
         env = JetbotEnv(args.task, from_dict(data), randomize=randomize, image_size=size,
                         model_max_speed=policy.max_speed)
         try:
-            far, close = moments(env, seed, expert, args.bearing, args.near)
-            out += [(f"{name}, in view", far), (f"{name}, {args.near:g} m", close)]
+            out += [(f"{name}, {distance:.2f} m", frame) for frame, distance
+                    in moments(env, seed, expert, args.bearing, args.near)]
         finally:
             env.close()
         print(name, flush=True)
@@ -216,7 +221,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=30000)
     parser.add_argument("--bearing", type=float, default=15.0,
                         help="degrees: the frame is taken once the goal is this near ahead")
-    parser.add_argument("--near", type=float, default=0.15,
+    parser.add_argument("--near", type=float, default=0.13,
                         help="m: the second frame is taken once the goal is this near")
     parser.add_argument("--patch", type=int, default=8)
     parser.add_argument("--stride", type=int, default=2)
