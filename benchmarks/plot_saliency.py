@@ -34,6 +34,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from jetbot_rt.errors import UsageError
+
 HERE = Path(__file__).resolve().parent
 IMAGES = HERE.parent / "docs" / "images"
 RED_FLOOR = 0.3
@@ -106,6 +108,8 @@ def moments(env: Any, seed: int, expert: Any, bearing_deg: float, near: float,
     first nearer than ``near`` m (the stop, where a seek episode fails most) or, when the
     episode never comes that near, its nearest."""
     obs, info = env.reset(seed=seed)
+    if "goal_xy" not in info:
+        raise UsageError(f"task {env.task.name!r} has no goal to look at (no goal_xy in its info)")
     seen: list[tuple[np.ndarray, float]] = []
     nearest: tuple[np.ndarray, float] = (obs, math.inf)
     for _ in range(max_steps or env.task.episode_steps):
@@ -151,6 +155,8 @@ def tiles(args: argparse.Namespace, policy: Any) -> list[tuple[str, np.ndarray]]
         jobs.append((path.stem, merged(base, read_toml(path)), False, args.seed))
     for i in range(args.randomized):
         jobs.append((f"training draw {i + 1}", base, True, args.seed + 100 + i))
+    if not jobs:
+        raise UsageError(f"no *.toml in {args.conditions} and --randomized 0: nothing to plot")
     out = []
     for name, data, randomize, seed in jobs:
         env = JetbotEnv(args.task, from_dict(data), randomize=randomize, image_size=size,
@@ -208,7 +214,6 @@ def plot(args: argparse.Namespace, policy: Any, frames: list[tuple[str, np.ndarr
 
 def main() -> int:
     from jetbot_rt.config.sections import Config
-    from jetbot_rt.errors import UsageError
     from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
