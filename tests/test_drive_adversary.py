@@ -80,3 +80,32 @@ def test_another_local_user_cannot_drive_through_a_loopback_page(page):
     assert other.stdout.strip() == "403", other.stderr
     assert not driven
     assert post(port, b'{"left": 1, "right": 1}') == 200 and driven == [(1.0, 1.0)]
+
+
+BACKGROUND_JOB = """
+import fcntl, os, pty, sys, termios
+from jetbot_rt.errors import UsageError
+from jetbot_rt.teleop.keyboard import KeyboardInput
+master, slave = pty.openpty()
+os.setsid()
+fcntl.ioctl(slave, termios.TIOCSCTTY, 0)  # our terminal, our job in its foreground
+if os.fork() == 0:
+    os.setpgid(0, 0)  # a job of its own: the background, as after `&` or Ctrl-Z then `bg`
+    try:
+        KeyboardInput(slave).close()
+    except UsageError as exc:
+        print(exc)
+        os._exit(2)
+    os._exit(0)
+_, status = os.wait()
+sys.exit(os.WEXITSTATUS(status))
+"""
+
+
+def test_the_keyboard_refuses_a_background_job_of_its_terminal():
+    # before, `jetbot-rt drive --input keyboard &` was stopped by SIGTTOU at tcsetattr, and
+    # once continued ended on "unexpected error: (4, 'Interrupted system call')"
+    result = subprocess.run([sys.executable, "-c", BACKGROUND_JOB], capture_output=True,
+                            text=True, timeout=30)
+    assert result.returncode == 2, result.stderr
+    assert "background job" in result.stdout

@@ -25,6 +25,7 @@ import contextlib
 import errno
 import os
 import select
+import signal
 import sys
 import termios
 import threading
@@ -61,6 +62,26 @@ def split_keys(data: bytes) -> list[bytes]:
     return keys
 
 
+def _background(fd: int) -> bool:
+    """Whether ``fd`` is our controlling terminal and another job is in its foreground (a
+    fresh pty that is no one's controlling terminal has no foreground: not background)."""
+    try:
+        return os.tcgetpgrp(fd) != os.getpgrp()
+    except OSError:
+        return False
+
+
+def _set_mode(fd: int, mode: list[Any]) -> None:
+    """``tcsetattr`` with SIGTTOU blocked: moved to the background (Ctrl-Z, ``bg``) the
+    drive would otherwise be stopped again by its own exit's restore, and its ``tcsetattr``
+    fail with EINTR once continued; blocked, the kernel lets the change through."""
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTTOU})
+    try:
+        termios.tcsetattr(fd, termios.TCSANOW, mode)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
+
 class KeyboardInput(HandInput):
     name = "keyboard"
 
@@ -70,6 +91,9 @@ class KeyboardInput(HandInput):
         if not os.isatty(fd):
             raise UsageError("--input keyboard needs a terminal on stdin (an ssh session "
                              "with a terminal: ssh -t)")
+        if _background(fd):
+            raise UsageError("--input keyboard: this is a background job of its terminal, "
+                             "which cannot read keys (run it in the foreground)")
         self._saved: list[Any] | None = termios.tcgetattr(fd)
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
@@ -81,7 +105,7 @@ class KeyboardInput(HandInput):
         mode[3] &= ~(termios.ICANON | termios.ECHO)  # lflag; ISIG stays: Ctrl-C is SIGINT
         mode[6] = list(mode[6])
         mode[6][termios.VMIN], mode[6][termios.VTIME] = 0, 0
-        termios.tcsetattr(self.fd, termios.TCSANOW, mode)
+        _set_mode(self.fd, mode)
         print("keys: w/s forward/back, a/d turn, q/e arcs, space brake (hold to drive); "
               "x or Ctrl-C ends", file=sys.stderr, flush=True)
         self._thread = threading.Thread(target=self._read, name="jetbot-rt-keyboard",
@@ -126,5 +150,5 @@ class KeyboardInput(HandInput):
             self._thread.join(2 * POLL_S + 0.5)
         if self._saved is not None:
             with contextlib.suppress(termios.error, OSError):
-                termios.tcsetattr(self.fd, termios.TCSANOW, self._saved)
+                _set_mode(self.fd, self._saved)
             self._saved = None
