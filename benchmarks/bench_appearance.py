@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from versions import stamp
 
 from jetbot_rt.config.sections import from_dict
 from jetbot_rt.train.env import JetbotEnv
@@ -91,7 +92,7 @@ def main() -> int:
             "resets": args.resets, "steps_per_reset": args.steps,
             "clock": "process CPU time" if CPU else "wall"}
     OUT.mkdir(exist_ok=True)
-    (OUT / "appearance.json").write_text(json.dumps({**meta, "results": results}, indent=2))
+    (OUT / "appearance.json").write_text(json.dumps(stamp({**meta, "results": results}), indent=2))
     lines = [
         "# What the appearance families cost (seek, 56x56)", "",
         f"Command: `.venv/bin/python benchmarks/{meta['command']}`  ",

@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from versions import stamp
+
 JETBOT_RT = shutil.which("jetbot-rt") or str(Path(sys.executable).parent / "jetbot-rt")
 
 
@@ -90,7 +92,7 @@ def main() -> int:
     }
     print(json.dumps(result, indent=1))
     if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+        Path(args.out).write_text(json.dumps(stamp(result), indent=1) + "\n")
     return 0
 
 

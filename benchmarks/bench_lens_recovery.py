@@ -18,6 +18,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from bench_sim import machine
+from versions import stamp
 
 from jetbot_rt.calibration.intrinsics import Lens, radial_error_px
 from jetbot_rt.config.sections import load_config
@@ -88,7 +89,7 @@ def main() -> None:
             result["rows"].append(run(name, truth, Path(where)))
             print(result["rows"][-1], flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "lens_recovery.json").write_text(json.dumps(result, indent=2) + "\n")
+    (args.out / "lens_recovery.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
     (args.out / "lens_recovery.md").write_text(markdown(result))
     print(markdown(result))
 
