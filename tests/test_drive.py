@@ -140,6 +140,7 @@ def test_the_scripted_person_takes_over_from_a_failing_policy_and_the_recording_
     ({"input": "scripted", "backend": "real"}, "needs --backend sim"),
     ({"deadman": 0.5}, "--deadman must be in"),
     ({"deadman": 0.0}, "--deadman must be in"),
+    ({"deadman": 0.30000001}, "got 0.30000001$"),  # as given: 0.3 would look inside the bound
 ])
 def test_arguments_that_cannot_work_are_refused_at_configure(given, line):
     args = argparse.Namespace(**{"input": "keyboard", "backend": "sim", "deadman": 0.2,
@@ -152,10 +153,15 @@ def test_arguments_that_cannot_work_are_refused_at_configure(given, line):
     (["--input", "keyboard", "--backend", "sim"], "needs a terminal on stdin"),
     (["--input", "gamepad", "--backend", "sim", "--gamepad-device", "/nonexistent/js0"],
      "--gamepad-device /nonexistent/js0"),
+    (["--input", "scripted", "--backend", "sim"], "task 'forward' has no privileged expert"),
+    (["--input", "page", "--backend", "sim"], "it needs --monitor"),
 ])
-def test_bad_input_is_one_line_and_exit_2_before_any_motor(args, line, tmp_path):
-    result = subprocess.run([JETBOT_RT, "drive", *args], stdin=subprocess.DEVNULL,
-                            capture_output=True, text=True, timeout=HANG_S)
+def test_bad_input_is_one_line_and_exit_2_before_any_motor_or_file(args, line, tmp_path):
+    record = tmp_path / "rec"
+    result = subprocess.run([JETBOT_RT, "drive", *args, "--record", str(record)],
+                            stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                            timeout=HANG_S)
     assert result.returncode == 2
     assert line in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert "driving" not in result.stdout
+    assert not record.exists(), "bad input left a recording behind"

@@ -51,21 +51,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def check_arguments(args: argparse.Namespace) -> None:
     if not 0 < args.deadman <= MAX_DEADMAN_S:
-        raise UsageError(f"--deadman must be in (0, {MAX_DEADMAN_S:g}] s, got {args.deadman:g}")
+        # repr, not :g: 0.30000001 shown as 0.3 would read as a value inside the bound
+        raise UsageError(f"--deadman must be in (0, {MAX_DEADMAN_S:g}] s, got {args.deadman!r}")
     if args.input == "scripted" and args.backend != "sim":
         raise UsageError("--input scripted is the simulator's stand-in for a person: it "
                          "needs --backend sim")
 
 
 class Inputs(Phase):
-    """The hand input, opened before the robot connects; closed (the terminal's mode given
-    back) at the stop. Lost: the latch trips (a fault, exit 3), then the ``input_lost``
-    event; a quit key is an orderly stop (exit 0)."""
+    """The hand input, validated and opened right after the policy loaded, before the
+    recording or any device: a missing terminal or device, a task without an expert, a page
+    input without the page is bad input with nothing written. Closed (the terminal's mode
+    given back) at the stop."""
 
-    def __init__(self, rt: DriveRuntime, load: Load, prepare: Prepare) -> None:
+    def __init__(self, rt: DriveRuntime, load: Load) -> None:
         self.rt = rt
         self.load = load
-        self.prepare = prepare
         self.hand: HandInput | None = None
 
     def enter(self) -> None:
@@ -73,26 +74,47 @@ class Inputs(Phase):
         if args.input == "keyboard":
             from jetbot_rt.teleop.keyboard import KeyboardInput
 
-            hand: HandInput = KeyboardInput(sys.stdin.fileno(), args.deadman)
+            self.hand = KeyboardInput(sys.stdin.fileno(), args.deadman)
         elif args.input == "page":
-            from jetbot_rt.teleop.page import PageInput
-
-            server = rt.monitor.server
-            if server is None or not rt.config.monitor.drive:
+            if rt.config.monitor.listen is None or not rt.config.monitor.drive:
                 raise UsageError("--input page drives from the monitor's page: it needs "
                                  "--monitor (or [monitor] listen) and [monitor] drive = true")
-            hand = PageInput(server, args.deadman)
+            # the PageInput itself needs the monitor's server: StartInputs makes it
         elif args.input == "gamepad":
             from jetbot_rt.teleop.gamepad import GamepadInput
 
-            hand = GamepadInput(args.gamepad_device, args.deadman)
+            self.hand = GamepadInput(args.gamepad_device, args.deadman)
         else:
             from jetbot_rt.tasks import load_task
             from jetbot_rt.teleop.scripted import ScriptedInput
 
-            hand = ScriptedInput(load_task(rt.task_name(self.load)), rt.policy_drives,
-                                 rt.config.sim.seed)
-        self.hand = hand
+            self.hand = ScriptedInput(load_task(rt.task_name(self.load)), rt.policy_drives,
+                                      rt.config.sim.seed)
+
+    def exit(self) -> None:
+        if self.hand is not None:
+            self.hand.close()
+
+
+class StartInputs(Phase):
+    """The hand input starts listening just before the robot connects. Lost: the latch trips
+    (a fault, exit 3), then the ``input_lost`` event; a quit key is an orderly stop
+    (exit 0)."""
+
+    def __init__(self, rt: DriveRuntime, inputs: Inputs) -> None:
+        self.rt = rt
+        self.inputs = inputs
+
+    def enter(self) -> None:
+        rt = self.rt
+        if rt.args.input == "page":
+            from jetbot_rt.teleop.page import PageInput
+
+            server = rt.monitor.server
+            assert server is not None  # Inputs refused a page input without [monitor] listen
+            self.inputs.hand = PageInput(server, rt.args.deadman)
+        hand = self.inputs.hand
+        assert hand is not None
         hand.on_lost = self._lost
         hand.on_quit = lambda reason: rt.latch.trip(reason, fault=False)
         hand.start()
@@ -101,10 +123,6 @@ class Inputs(Phase):
         rt = self.rt
         rt.latch.trip(f"input lost: {reason}")  # motors zero first, then say so
         rt.event("input_lost", reason=reason)
-
-    def exit(self) -> None:
-        if self.hand is not None:
-            self.hand.close()
 
 
 class HandDrive(Drive):
@@ -168,7 +186,8 @@ class HandDrive(Drive):
 
 class DriveRuntime(Runtime):
     """``run``'s runtime with the hand input: ``phases`` are run's, ``Inputs`` before
-    ``Connect`` and ``HandDrive`` in place of ``Drive``."""
+    ``Prepare`` (which opens the recording), ``StartInputs`` before ``Connect`` and
+    ``HandDrive`` in place of ``Drive``."""
 
     def __init__(self, args: argparse.Namespace) -> None:
         check_arguments(args)
@@ -194,9 +213,10 @@ class DriveRuntime(Runtime):
         load = next(p for p in phases if isinstance(p, Load))
         prepare = next(p for p in phases if isinstance(p, Prepare))
         self.prepare_phase = prepare
-        inputs = Inputs(self, load, prepare)
+        inputs = Inputs(self, load)
+        phases.insert(phases.index(prepare), inputs)
         connect = next(i for i, p in enumerate(phases) if isinstance(p, Connect))
-        phases.insert(connect, inputs)
+        phases.insert(connect, StartInputs(self, inputs))
         drive = next(i for i, p in enumerate(phases) if isinstance(p, Drive))
         phases[drive] = HandDrive(phases[drive], inputs)  # type: ignore[arg-type]
         return phases
