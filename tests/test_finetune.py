@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -155,6 +157,27 @@ def test_a_hostile_recording_is_refused_in_one_line(rec, spoil, line):
     spoil(rec)
     with pytest.raises(UsageError, match=line.replace("[", r"\[").replace("]", r"\]")):
         read_labels([str(rec)], 56)
+
+
+READ_FRAMES = """import sys
+from jetbot_rt.train.decoder_log import quiet_ffmpeg
+quiet_ffmpeg()
+from jetbot_rt.recording.reader import Recording
+print(sum(1 for _ in Recording.open(sys.argv[1]).frames()))
+"""
+
+
+def test_a_truncated_video_reads_to_its_last_whole_frame_without_ffmpegs_own_log_line(rec):
+    """In a fresh process (FFmpeg's level is set at a process's first capture), reading as
+    read_labels does: FFmpeg's "File ended prematurely" must not join our one-line error."""
+    frames = rec / "frames.mkv"
+    data = frames.read_bytes()
+    frames.write_bytes(data[:len(data) // 2])
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_FFMPEG")}
+    result = subprocess.run([sys.executable, "-c", READ_FRAMES, str(rec)], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stderr == "", result.stderr
+    assert 0 < int(result.stdout) < 24
 
 
 def test_frames_of_another_size_than_the_network_are_refused(rec):

@@ -43,6 +43,7 @@ from jetbot_rt.config.safe_file import shown
 from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.dagger import Dataset, jitter
+from jetbot_rt.train.decoder_log import quiet_ffmpeg
 from jetbot_rt.train.finetune_args import FinetuneArgs
 from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.model import ActorCritic
@@ -167,6 +168,7 @@ def read_labels(paths: list[str] | tuple[str, ...], image_size: int,
     each other and were all driven by hand."""
     from jetbot_rt.recording.reader import Recording
 
+    quiet_ffmpeg()  # a truncated video: our one line, not FFmpeg's besides
     frames: list[np.ndarray] = []
     labels: list[list[float]] = []
     ticks = takeovers = 0
