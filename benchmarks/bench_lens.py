@@ -20,7 +20,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-from bench_sim import actions, machine, stats_ms
+from bench_sim import actions, env_steps_per_s, machine, stats_ms
 from versions import stamp
 
 from jetbot_rt.config.sections import Config
@@ -62,19 +62,7 @@ def bench_env(path: dict, steps: int) -> float:
     for key, value in path["sim"].items():
         setattr(config.sim, key, value)
     env = JetbotEnv("seek", config, image_size=(path["size"], path["size"]))
-    commands = actions(np.random.default_rng(0), steps)
-    env.reset(seed=0)
-    for i in range(20):
-        env.step(commands[i])
-    env.reset(seed=1)
-    t0 = time.perf_counter()
-    for i in range(steps):
-        _, _, terminated, truncated, _ = env.step(commands[i])
-        if terminated or truncated:
-            env.reset()
-    elapsed = time.perf_counter() - t0
-    env.close()
-    return steps / elapsed
+    return env_steps_per_s(env, steps, seed=0)
 
 
 def markdown(result: dict) -> str:

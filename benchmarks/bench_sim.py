@@ -16,6 +16,7 @@ import multiprocessing as mp
 import os
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -71,16 +72,16 @@ def bench_tick(path: dict, ticks: int) -> dict[str, object]:
             "render": stats_ms(render_s)}
 
 
-def env_worker(path: dict, steps: int, seed: int, ready: mp.Barrier, out: mp.Queue) -> None:
-    config = Config()
-    config.sim.physics_hz = path["physics_hz"]
-    env = JetbotEnv("forward", config, image_size=(path["size"], path["size"]))
+def env_steps_per_s(env: JetbotEnv, steps: int, seed: int,
+                    before: Callable[[], object] = lambda: None) -> float:
+    """Env steps per second of ``steps`` seeded random commands, after 20 warm-up steps outside
+    the timed part (``before`` runs just before the clock starts); closes ``env``."""
     commands = actions(np.random.default_rng(seed), steps)
     env.reset(seed=seed)
-    for i in range(20):  # warm-up outside the timed part
+    for i in range(20):
         env.step(commands[i])
     env.reset(seed=seed)
-    ready.wait()
+    before()
     t0 = time.perf_counter()
     for i in range(steps):
         _, _, terminated, truncated, _ = env.step(commands[i])
@@ -88,7 +89,14 @@ def env_worker(path: dict, steps: int, seed: int, ready: mp.Barrier, out: mp.Que
             env.reset()
     elapsed = time.perf_counter() - t0
     env.close()
-    out.put(steps / elapsed)
+    return steps / elapsed
+
+
+def env_worker(path: dict, steps: int, seed: int, ready: mp.Barrier, out: mp.Queue) -> None:
+    config = Config()
+    config.sim.physics_hz = path["physics_hz"]
+    env = JetbotEnv("forward", config, image_size=(path["size"], path["size"]))
+    out.put(env_steps_per_s(env, steps, seed, ready.wait))
 
 
 def bench_env(path: dict, processes: int, steps: int) -> dict[str, object]:
