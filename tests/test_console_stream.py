@@ -13,6 +13,8 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
+from runner import wait_for
+
 from jetbot_rt.service.console import NonBlockingStream
 
 LIVENESS_S = 30.0
@@ -20,28 +22,28 @@ LIVENESS_S = 30.0
 
 
 def wait_until(predicate: Callable[[], bool]) -> bool:
-    deadline = time.monotonic() + LIVENESS_S
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.001)
-    return True
+    return wait_for(predicate, LIVENESS_S, interval=0.001) is not None
+
+
+def filled_pipe() -> tuple[int, int, int]:
+    """A pipe whose buffer is full: its read end, its (blocking) write end, the bytes in it."""
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+    filled = 0
+    try:
+        while True:
+            filled += os.write(write_end, b"f" * 4096)
+    except BlockingIOError:
+        pass
+    os.set_blocking(write_end, True)
+    return read_end, write_end, filled
 
 
 @contextmanager
 def stream_on_a_pipe(limit: int, full: bool) -> Iterator[tuple[NonBlockingStream, int, int]]:
     """A stream on a pipe's write end (its buffer filled first when ``full``: the writer
     thread blocks on its first line); yields the stream, the read end and the filler's size."""
-    read_end, write_end = os.pipe()
-    filled = 0
-    if full:
-        os.set_blocking(write_end, False)
-        try:
-            while True:
-                filled += os.write(write_end, b"f" * 4096)
-        except BlockingIOError:
-            pass
-        os.set_blocking(write_end, True)
+    read_end, write_end, filled = filled_pipe() if full else (*os.pipe(), 0)
     original = io.TextIOWrapper(io.FileIO(write_end, "w", closefd=False), encoding="utf-8")
     stream = NonBlockingStream(original, limit=limit)
     try:
@@ -152,15 +154,7 @@ def test_a_stream_sharing_its_writer_still_writes_after_the_other_one_closed() -
 
 def test_lines_queued_behind_a_write_the_reader_left_are_counted_lost_and_the_fd_closed(
         ) -> None:
-    read_end, write_end = os.pipe()
-    os.set_blocking(write_end, False)
-    filled = 0
-    try:
-        while True:
-            filled += os.write(write_end, b"f" * 4096)
-    except BlockingIOError:
-        pass
-    os.set_blocking(write_end, True)
+    read_end, write_end, _ = filled_pipe()
     original = io.TextIOWrapper(io.FileIO(write_end, "w", closefd=False), encoding="utf-8")
     stream = NonBlockingStream(original)
     try:

@@ -7,10 +7,9 @@ the watchdog runs its real thread on a clock the test moves by hand.
 from __future__ import annotations
 
 import threading
-import time
-from collections.abc import Callable
 
 import pytest
+from runner import wait_for
 
 from jetbot_rt.hal.i2c import I2CBus
 from jetbot_rt.hal.motors import WaveshareDrive
@@ -391,7 +390,7 @@ class TestAZeroWriteThatFailsIsTriedAgain:
         chip.absent = True
         tripper = threading.Thread(target=latch.trip, args=("bus gone",), daemon=True)
         tripper.start()
-        assert wait_until(lambda: guarded.failed_stops >= 1)
+        assert wait_for(lambda: guarded.failed_stops >= 1, LIVENESS_S) is not None
         guarded.stop()  # the exit path's stop, while the trip's still retries
         tripper.join(LIVENESS_S)
         assert not tripper.is_alive()
@@ -400,13 +399,6 @@ class TestAZeroWriteThatFailsIsTriedAgain:
         assert guarded.zero_confirmed is False
 
 
-def wait_until(predicate: Callable[[], bool]) -> bool:
-    deadline = time.monotonic() + LIVENESS_S
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.001)
-    return True
 
 
 class LandingHangingDrive(HangingWriteDrive):
