@@ -313,7 +313,9 @@ def parity_error(model: nn.Module, onnx_bytes: bytes, batch: int = 3, seed: int 
                           f"as reshape(2, -1)? {first_line(exc)})") from None
     # TF32 off: a GPU's default TF32 convolutions differ from float32 by ~3e-4 (measured on
     # an H200), which would refuse a correct graph trained there.
-    with torch.no_grad(), torch.backends.cudnn.flags(enabled=True, allow_tf32=False):
+    cudnn = torch.backends.cudnn
+    with torch.no_grad(), cudnn.flags(enabled=cudnn.enabled, benchmark=cudnn.benchmark,
+                                      deterministic=cudnn.deterministic, allow_tf32=False):
         result = model(torch.from_numpy(images).to(_device(model)))
     want = [t.detach().cpu().numpy() for t in _outputs(result)]
     if [g.shape for g in got] != [w.shape for w in want]:
