@@ -235,7 +235,15 @@ def fit_recording(path: str, out: str | None) -> int:
         result = fit(data, geometry, max_duty)
     except ValueError as exc:
         raise UsageError(f"{path}: {exc}") from None
-    return write_toml(to_toml(result, geometry, path), out)
+    return write_toml(to_toml(result, geometry, comment_text(path)), out)
+
+
+def comment_text(path: str) -> str:
+    """``path`` as the output's first comment line shows it: a byte that is not UTF-8 as
+    ``\\xNN`` (a lone surrogate cannot be encoded or printed) and a line break or other
+    control character escaped, since a path may hold one and it would start a TOML line of
+    its own in the file ``--out`` writes (``--frames 'v\\n[sim]\\nmotor_gain = 9'``)."""
+    return "".join(c if c.isprintable() else ascii(c)[1:-1] for c in safe_file.shown(path))
 
 
 def write_toml(text: str, out: str | None) -> int:
@@ -317,7 +325,7 @@ def camera_run(args: argparse.Namespace) -> int:
         result = calibrate(views, size)
     except ValueError as exc:
         raise UsageError(f"{source}: {exc}") from None
-    return write_toml(intrinsics_toml(result, source), args.out)
+    return write_toml(intrinsics_toml(result, comment_text(source)), args.out)
 
 
 def run(args: argparse.Namespace) -> int:
