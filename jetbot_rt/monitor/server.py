@@ -388,7 +388,8 @@ class MonitorHandler(BaseHTTPRequestHandler):
         if not self._allowed():
             return self._forbid()
         path = urlsplit(self.path).path
-        if path not in ("/stop", "/drive") or (path == "/drive" and self.server.on_drive is None):
+        on_drive = self.server.on_drive  # once: the drive's stop clears it from its thread
+        if path not in ("/stop", "/drive") or (path == "/drive" and on_drive is None):
             return self._send(HTTPStatus.NOT_FOUND, b"not found\n")
         origin = self.headers.get("Origin")
         if origin is not None and urlsplit(origin).netloc != self.headers.get("Host"):
@@ -396,12 +397,13 @@ class MonitorHandler(BaseHTTPRequestHandler):
         if path == "/drive":
             if self.server.token is None and not self._own_user():
                 return self._forbid()  # no token on loopback: another local account
-            return self._drive(body)
+            assert on_drive is not None  # the local read once above: no race
+            return self._drive(body, on_drive)
         peer = self.client_address[0]
         self.server.on_stop(f"stop from the monitor page ({peer})")
         self._send(HTTPStatus.OK, b"stopping\n")
 
-    def _drive(self, body: bytes) -> None:
+    def _drive(self, body: bytes, on_drive: Callable[[float, float], None]) -> None:
         """``{"left": L, "right": R}``, each a number in -1..1: a hand command for the deadman
         time (the page repeats it while a button is held). Anything else: 400, nothing moves."""
         try:
@@ -415,8 +417,7 @@ class MonitorHandler(BaseHTTPRequestHandler):
         except (ValueError, TypeError, KeyError, UnicodeDecodeError):
             return self._send(HTTPStatus.BAD_REQUEST,
                               b'{"left": L, "right": R} with L, R in -1..1\n')
-        assert self.server.on_drive is not None
-        self.server.on_drive(left, right)
+        on_drive(left, right)
         self._send(HTTPStatus.OK, b"ok\n")
 
     def _token_login(self, given: str) -> None:
