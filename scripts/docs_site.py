@@ -90,14 +90,6 @@ def _cell(text: str) -> str:
     return text.replace("|", "\\|")
 
 
-def _default_of(f: dataclasses.Field) -> Any:
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:
-        return f.default_factory()
-    return None
-
-
 def _toml_value(value: Any) -> str:
     if value is None:
         return "none"
@@ -127,6 +119,7 @@ def config_keys() -> Iterator[tuple[str, str, dataclasses.Field, str]]:
 def config_reference() -> str:
     from jetbot_rt.config.sections import Config
     from jetbot_rt.sim.config import randomized_knobs
+    from jetbot_rt.train.flags import field_default
 
     comments = default_config_comments(DEFAULT_CONFIG.read_text(encoding="utf-8"))
     ranges = {spec.key or name: (name, spec) for name, spec in randomized_knobs()}
@@ -159,7 +152,7 @@ def config_reference() -> str:
             knob, spec = ranges[key]
             said = f"Per-episode range of `[sim] {knob}` ({spec.draw}). {spec.doc}"
         accepted = f.metadata.get("expected", "")
-        lines += [f"`{key} = {_toml_value(_default_of(f))}`",
+        lines += [f"`{key} = {_toml_value(field_default(f))}`",
                   f":   *{_cell(type_text + (': ' + accepted if accepted else ''))}.* "
                   f"{_cell(said)}", ""]
     lines += train_keys()
@@ -174,7 +167,7 @@ def train_keys() -> list[str]:
     """``[train]`` and ``[train.model]``: the trainers' parameters (``PPOArgs``, ``DAggerArgs``,
     ``ModelConfig``), each with the flag that sets it too."""
     from jetbot_rt.train.cli import flag
-    from jetbot_rt.train.flags import field_docs
+    from jetbot_rt.train.flags import field_default, field_docs
     from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig, PPOArgs
 
     lines = ["", "## [train] and [train.model] (jetbot-train only)", "",
@@ -190,12 +183,12 @@ def train_keys() -> list[str]:
         f = ppo.get(name) or dagger[name]
         algo = "PPO and DAgger" if name in ppo and name in dagger else \
             ("PPO" if name in ppo else "DAgger")
-        lines += [f"`{name} = {_toml_value(_default_of(f))}`",
+        lines += [f"`{name} = {_toml_value(field_default(f))}`",
                   f":   *{algo}; `{flag(name)}`.* {_cell(docs.get(name, ''))}", ""]
     lines += ["### [train.model]", ""]
     model_docs = field_docs(ModelConfig)
     for f in dataclasses.fields(ModelConfig):
-        lines += [f"`{f.name} = {_toml_value(_default_of(f))}`",
+        lines += [f"`{f.name} = {_toml_value(field_default(f))}`",
                   f":   *`{flag('model.' + f.name)}`.* {_cell(model_docs.get(f.name, ''))}", ""]
     return lines
 

@@ -63,7 +63,8 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def _default(spec: dataclasses.Field) -> Any:
+def field_default(spec: dataclasses.Field) -> Any:
+    """A dataclass field's default (its factory's value), None where it has none."""
     if spec.default is not dataclasses.MISSING:
         return spec.default
     if spec.default_factory is not dataclasses.MISSING:
@@ -80,7 +81,7 @@ def _help(doc: str, default: Any, per_task: dict[str, Any]) -> str:
 
 def _add(group: argparse._ArgumentGroup, flags: list[str], dest: str, spec: dataclasses.Field,
          doc: str, per_task: dict[str, Any]) -> None:
-    default = _default(spec)
+    default = field_default(spec)
     kwargs: dict[str, Any] = {"dest": dest, "default": argparse.SUPPRESS,
                               "help": _help(doc, default, per_task)}
     annotation = str(spec.type)
