@@ -23,6 +23,8 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
+from jetbot_rt.sim.config import WALL_TEXTURES
+
 FLOOR_TEXELS = 256
 """Texels a side of the floor texture (the floor is 3 m square): 1.2 cm texels, 4 times
 cheaper to draw per episode than 512 (docs/SIM.md, "Appearance families")."""
@@ -73,14 +75,6 @@ def _shade(base: Rgb, factor: np.ndarray) -> np.ndarray:
 
 def _to_u8(image: np.ndarray) -> np.ndarray:
     return np.clip(image * np.float32(255.0) + np.float32(0.5), 0, 255).astype(np.uint8)
-
-
-def _jitter(rng: np.random.Generator, color: Rgb, amount: float) -> Rgb:
-    """``color`` with its lightness times 1 +- ``amount`` and a small hue shift."""
-    h, light, s = colorsys.rgb_to_hls(*color)
-    h = (h + rng.uniform(-0.02, 0.02)) % 1.0
-    light = min(max(light * (1.0 + rng.uniform(-amount, amount)), 0.0), 1.0)
-    return colorsys.hls_to_rgb(h, light, s)
 
 
 def checker(base: Rgb, rng: np.random.Generator) -> np.ndarray:
@@ -299,7 +293,8 @@ def bake_light(texture: np.ndarray, lamps: int, window: float, seed: int) -> np.
     return np.clip(texture * light + np.float32(0.5), 0, 255).astype(np.uint8)
 
 
-WALL_STYLES = ("flat", "paint", "wallpaper", "panel")
+WALL_STYLES = WALL_TEXTURES
+"""``[sim] wall_texture``'s choices (the schema's own tuple, not a copy to keep in step)."""
 SKIRTING_M = 0.06
 """Height of a skirting board."""
 
