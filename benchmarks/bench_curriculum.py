@@ -57,7 +57,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from versions import stamp
+from versions import cpu_model, stamp
+
+from jetbot_rt.train.versions import git_commit
 
 REPO = Path(__file__).resolve().parent.parent
 ARMS = ("none", "curriculum")
@@ -329,14 +331,6 @@ def summary(arm: Arm, args: argparse.Namespace) -> dict[str, Any]:
 # -- the whole benchmark ----------------------------------------------------------------------
 
 def machine() -> dict[str, Any]:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     gpu = None
     try:
         import torch
@@ -345,22 +339,15 @@ def machine() -> dict[str, Any]:
             gpu = torch.cuda.get_device_name(0)
     except ImportError:
         pass
-    return {"host": socket.gethostname(), "cpu": cpu, "cores_usable": len(os.sched_getaffinity(0)),
-            "gpu": gpu, "python": platform.python_version(),
+    return {"host": socket.gethostname(), "cpu": cpu_model(),
+            "cores_usable": len(os.sched_getaffinity(0)), "gpu": gpu,
+            "python": platform.python_version(),
             "loadavg_1min_at_start": round(os.getloadavg()[0], 2)}
 
 
 def results_dir() -> Path:
     out = os.environ.get("OUT")
     return Path(out) / "curriculum" if out else REPO / "benchmarks" / "results"
-
-
-def commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
-                              capture_output=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
 
 
 def split_cores(args: argparse.Namespace) -> list[tuple[list[int], list[int]]]:
@@ -497,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": shlex.join(["python", "benchmarks/bench_curriculum.py",
                                *(sys.argv[1:] if argv is None else argv)]),
         "date": datetime.fromtimestamp(wall_began, timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "commit": commit(),
+        "commit": git_commit(REPO),  # with -dirty: what ran
         "machine": machine(),
         "options": {k: v for k, v in vars(args).items() if k != "work"},
         "curriculum": "jetbot-train defaults: --curriculum-start 0 --curriculum-step 0.25 "

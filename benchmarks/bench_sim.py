@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from versions import stamp
+from versions import cpu_model, stamp
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.sim.config import SimConfig
@@ -115,15 +115,7 @@ def bench_env(path: dict, processes: int, steps: int) -> dict[str, object]:
 
 
 def machine() -> dict[str, object]:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
             "loadavg_1min_at_start": round(os.getloadavg()[0], 2)}
 
 

@@ -5,9 +5,23 @@ to call where it writes its JSON: ``json.dumps(stamp(result))``. The same record
 
 from __future__ import annotations
 
+import platform
+from pathlib import Path
 from typing import Any
 
 from jetbot_rt.train.versions import versions
+
+
+def cpu_model() -> str:
+    """The CPU's model name from ``/proc/cpuinfo`` (``platform.processor()`` where it has
+    none), for a results file's ``machine``."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
 
 
 def stamp(result: Any) -> Any:
