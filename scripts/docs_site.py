@@ -302,7 +302,6 @@ def reference_pages() -> dict[str, str]:
 # ---- links out of docs/ ------------------------------------------------------------------
 
 LINK = re.compile(r"(!?\[[^\]]*\]\()([^)\s#]+)(#[^)\s]*)?(\s+\"[^\"]*\")?\)")
-FENCE = re.compile(r"^(```|~~~)", re.MULTILINE)
 
 
 def _outside_text(markdown: str) -> Iterator[tuple[bool, str]]:
