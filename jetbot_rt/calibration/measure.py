@@ -12,12 +12,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from jetbot_rt.calibration.intrinsics import Lens
+from jetbot_rt.calibration.intrinsics import SENSOR_ASPECT, Lens
 
 MARKER_DICT = cv2.aruco.DICT_4X4_50
 MARKER_ID = 7
-SENSOR_ASPECT = 16 / 9
-"""The camera's field of view is the sensor's 16:9, as the sim renders it (sim/camera_model)."""
 
 
 def marker_png() -> Path:
