@@ -34,6 +34,7 @@ from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import EXIT_OK, UsageError
 from jetbot_rt.recording.reader import Recording
+from jetbot_rt.teleop.hand import HUMAN
 
 DISPLAY_WIDTH = 448  # frames are enlarged by a whole factor to about this width (56 px by 8)
 PANEL = 120  # px of text and bars under the frame
@@ -52,8 +53,6 @@ CODECS = (("avc1", "H.264"), ("mp4v", "mp4v"))
 120 ms a frame here against mp4v's 4: 30 times the report's time."""
 NO_H264 = ("this OpenCV's FFmpeg has no H.264 encoder, so browsers may not play it; "
            "`ffmpeg -i run.mp4 -c:v libx264 -pix_fmt yuv420p run-h264.mp4` converts it")
-HUMAN = "human"
-"""A tick record's ``driver`` while a person drives (``jetbot-rt drive``'s takeover)."""
 FAULT_COLOR, ORDERLY_COLOR, HUMAN_COLOR = "tab:red", "tab:gray", "tab:purple"
 
 

@@ -42,6 +42,7 @@ from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
 from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
+from jetbot_rt.teleop.hand import HUMAN
 from jetbot_rt.train.dagger import Dataset, jitter
 from jetbot_rt.train.decoder_log import quiet_ffmpeg
 from jetbot_rt.train.finetune_args import FinetuneArgs
@@ -187,7 +188,7 @@ def read_labels(paths: list[str] | tuple[str, ...], image_size: int,
             ticks += 1
             human = record.get("human")
             tick = int(record["tick"])
-            if record.get("driver") != "human" or human is None:
+            if record.get("driver") != HUMAN or human is None:
                 seen.clear()
                 continue
             if seen and seen[-1][0] != tick - 1:
