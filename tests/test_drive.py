@@ -125,6 +125,7 @@ def test_the_scripted_person_takes_over_from_a_failing_policy_and_the_recording_
     recording = Recording.open(tmp_path / "rec")
     assert recording.meta["source"] == "jetbot-rt drive" and recording.meta["version"] == 2
     assert recording.meta["drive"]["input"] == "scripted"
+    assert recording.meta["drive"]["reaction_s"] > 0  # the stand-in person's settings
     drivers = {t["driver"] for t in recording.ticks}
     assert drivers == {"policy", "human"}, "2 s in that world need a takeover"
     human = [t for t in recording.ticks if t["driver"] == "human"]

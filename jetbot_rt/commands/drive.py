@@ -90,6 +90,8 @@ class Inputs(Phase):
 
             self.hand = ScriptedInput(load_task(rt.task_name(self.load)), rt.policy_drives,
                                       rt.config.sim.seed)
+        if self.hand is not None:  # the scripted person's reaction, noise and rules too
+            rt.record_meta["drive"].update(self.hand.describe())
 
     def exit(self) -> None:
         if self.hand is not None:
@@ -192,9 +194,9 @@ class DriveRuntime(Runtime):
     def __init__(self, args: argparse.Namespace) -> None:
         check_arguments(args)
         self.policy_drives = args.policy is not None
-        self.record_meta = {"source": "jetbot-rt drive",
-                            "drive": {"input": args.input, "deadman_s": args.deadman,
-                                      "policy_drives": args.policy is not None}}
+        self.record_meta: dict = {"source": "jetbot-rt drive",
+                                  "drive": {"input": args.input, "deadman_s": args.deadman,
+                                            "policy_drives": args.policy is not None}}
         self.drive_phase: HandDrive | None = None
         self.prepare_phase: Prepare | None = None
         super().__init__(args)

@@ -121,6 +121,9 @@ class Runtime:
     """One ``jetbot-rt run``. ``run()`` enters the phases through ``self.lifecycle`` and
     always ends in the stop phase, ``self.shutdown``."""
 
+    record_meta: dict | None = None
+    """More keys for the recording's meta.json (``jetbot-rt drive``: the hand input's)."""
+
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
         self.config = build_config(args)  # configure: bad input fails here, nothing is open

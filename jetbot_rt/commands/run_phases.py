@@ -106,7 +106,7 @@ class Prepare(Phase):
         policy = self.load.policy
         self.actions = ActionPipeline.from_config(rt.config.actions, policy.max_speed)
         self.recorder = open_recorder(rt.config, rt.args.backend, policy, self.actions.max_speed,
-                                      rt.telemetry.t0, getattr(rt, "record_meta", None))
+                                      rt.telemetry.t0, rt.record_meta)
         if self.recorder is not None:
             rt.shutdown.close_with_summary(self.recorder)
 

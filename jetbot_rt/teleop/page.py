@@ -21,13 +21,11 @@ class PageInput(HandInput):
     def __init__(self, server: Any, deadman_s: float = DEADMAN_S) -> None:
         super().__init__(deadman_s)
         self.server = server
-        self.requests = 0
 
     def start(self) -> None:
         self.server.on_drive = self._post
 
     def _post(self, left: float, right: float) -> None:
-        self.requests += 1
         self.propose(HandCommand((left, right), takeover=True))
 
     def close(self) -> None:
