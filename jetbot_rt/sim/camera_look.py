@@ -67,6 +67,9 @@ class CameraLook:
         self._floor_rate = math.sin(below) ** 2 / sim.camera_height  # rad/s per m/s
         self._rng = np.random.default_rng([sim.seed, NOISE_STREAM])
         self._gains: np.ndarray | None = None
+        self.ideal = (self._exposure == 1.0 and bool(np.all(self._balance == 1.0))
+                      and self._gain_noise == 0 and self._vignetting == 0 and self._shutter == 0)
+        """Whether frames pass unchanged (decided once: ``apply`` runs every frame)."""
         if not self.ideal:
             y, x = np.mgrid[0:height, 0:width].astype(np.float32)
             r2 = ((x + 0.5 - width / 2) / (width / 2)) ** 2 + ((y + 0.5 - height / 2)
@@ -74,11 +77,6 @@ class CameraLook:
             vignette = 1.0 - self._vignetting * np.clip(r2 / 2.0, 0.0, 1.0)  # corner: 1 - v
             self._gains = (vignette[:, :, None] * self._exposure
                            * self._balance[None, None, :]).astype(np.float32)
-
-    @property
-    def ideal(self) -> bool:
-        return (self._exposure == 1.0 and bool(np.all(self._balance == 1.0))
-                and self._gain_noise == 0 and self._vignetting == 0 and self._shutter == 0)
 
     def blur_lengths(self, yaw_rate: float, speed: float) -> tuple[float, float]:
         """(sideways, downwards) smear in pixels for this motion during the shutter."""

@@ -31,8 +31,12 @@ SKIRTINGS = ((0.95, 0.95, 0.93), (0.45, 0.3, 0.18), (0.35, 0.35, 0.35))
 """White, wood, grey."""
 
 
-def _r(value: float) -> float:
+def plain_float(value: float) -> float:
+    """A plain float, rounded to 6 digits so that a report or a TOML file reads well."""
     return round(float(value), 6)
+
+
+_r = plain_float
 
 
 def in_boxes(color: list[float] | tuple[float, ...], boxes: list[float]) -> bool:

@@ -18,6 +18,7 @@ from jetbot_rt.config.schema import set_value
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.appearance import wall_colors
 from jetbot_rt.sim.config import RandomizeConfig, Randomized, SimConfig, randomized_knobs
+from jetbot_rt.sim.look_draws import plain_float as _r
 from jetbot_rt.sim.look_draws import sample_looks
 
 DRAWN = (*(name for name, _ in randomized_knobs()), "seed", "floor_texture")
@@ -27,11 +28,6 @@ DRAWN = (*(name for name, _ in randomized_knobs()), "seed", "floor_texture")
 def _uniform(rng: np.random.Generator, bounds: list[float], size: int | None = None) -> Any:
     low, high = bounds
     return rng.uniform(low, high, size)
-
-
-def _r(value: float) -> float:
-    """A plain float, rounded to 6 digits so that a report or a TOML file reads well."""
-    return round(float(value), 6)
 
 
 def _color(rng: np.random.Generator, base: list[float], factor: list[float],
