@@ -10,7 +10,9 @@ from jetbot_rt.errors import UsageError
 
 pytest.importorskip("pybullet")
 
-from jetbot_rt.sim.randomize import DRAWN, sample, sim_toml
+from jetbot_rt.sim.config import randomized_knobs
+from jetbot_rt.sim.look_draws import LOOK_KEYS
+from jetbot_rt.sim.randomize import DRAWN, params, sample, sim_toml
 from jetbot_rt.train.env import JetbotEnv
 
 CONFIG = {"actions": {"max_speed": 0.4}}  # above the default dead-band range (0..0.3)
@@ -37,7 +39,9 @@ def test_same_seed_same_draw_and_frames_different_seed_different(env):
     info_c, frames_c, _ = episode(env, 9)
     assert set(info_a["sim_params"]) == set(DRAWN)
     assert np.array_equal(frames_a, frames_b) and pose_a == pose_b
-    continuous = [k for k in DRAWN if k != "floor_texture"]  # a choice of two may repeat
+    # floor_texture: a choice of two may repeat; the appearance families are off here
+    looks_off = set(LOOK_KEYS) - {name for name, _ in randomized_knobs()}
+    continuous = [k for k in DRAWN if k != "floor_texture" and k not in looks_off]
     differ = [k for k in continuous if info_a["sim_params"][k] != info_c["sim_params"][k]]
     assert differ == continuous  # every knob is drawn again
     assert not np.array_equal(frames_a[0], frames_c[0])
@@ -129,3 +133,11 @@ def test_the_sim_backend_draws_once_from_its_seed_when_enabled():
     other = first_frame({"randomize": {"enabled": True}, "sim": {"seed": 12}})
     assert np.array_equal(drawn, again)
     assert not np.array_equal(drawn, plain) and not np.array_equal(drawn, other)
+
+
+def test_the_reported_draw_tells_appearance_families_apart():
+    config = from_dict({"randomize": {"appearance": True}})
+    rng = np.random.default_rng(0)
+    draws = [params(sample(config.sim, config.randomize, rng)) for _ in range(2)]
+    assert set(LOOK_KEYS) <= set(draws[0])
+    assert draws[0]["look_seed"] != draws[1]["look_seed"]

@@ -18,11 +18,13 @@ from jetbot_rt.config.schema import set_value
 from jetbot_rt.errors import UsageError
 from jetbot_rt.sim.appearance import wall_colors
 from jetbot_rt.sim.config import RandomizeConfig, Randomized, SimConfig, randomized_knobs
+from jetbot_rt.sim.look_draws import LOOK_KEYS, sample_looks
 from jetbot_rt.sim.look_draws import plain_float as _r
-from jetbot_rt.sim.look_draws import sample_looks
 
-DRAWN = (*(name for name, _ in randomized_knobs()), "seed", "floor_texture")
-"""The [sim] keys a draw sets (``seed`` seeds the episode's image noise)."""
+_KNOBS = (*(name for name, _ in randomized_knobs()), "seed", "floor_texture")
+DRAWN = (*_KNOBS, *(key for key in LOOK_KEYS if key not in _KNOBS))
+"""The [sim] keys a draw sets (``seed`` seeds the episode's image noise; the appearance
+families' keys stay at their ``[sim]`` values unless ``[randomize] appearance`` is on)."""
 
 
 def _uniform(rng: np.random.Generator, bounds: list[float], size: int | None = None) -> Any:
