@@ -109,8 +109,11 @@ class Evaluator:
         self.need = math.ceil(target * episodes - 1e-9)
         """Successes that pass (90 of 100)."""
         self.workers = len(cores)
-        self.pool = multiprocessing.get_context("spawn").Pool(
-            self.workers, initializer=_pin, initargs=(cores,))
+        from jetbot_rt.train.vec_env import workers_ignore_the_working_directory
+
+        with workers_ignore_the_working_directory():  # as the trainer's own workers
+            self.pool = multiprocessing.get_context("spawn").Pool(
+                self.workers, initializer=_pin, initargs=(cores,))
 
     def verdict(self, path: Path, deadline: float) -> dict[str, Any] | None:
         """Episodes in seed order, ``workers`` at a time, until the verdict on the whole set
