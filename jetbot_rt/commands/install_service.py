@@ -272,10 +272,10 @@ def protect_home(executable: Path | PurePosixPath, config: PurePosixPath,
 
 
 def shebang_interpreter(executable: Path) -> PurePosixPath | None:
-    try:
-        with executable.open("rb") as script:
+    try:  # the staged tree's file: a FIFO or a device there must not hang the install
+        with open(safe_file.open_regular(executable, "program"), "rb") as script:
             first = script.readline(512)
-    except OSError:
+    except (OSError, UsageError):
         return None
     if not first.startswith(b"#!"):
         return None
