@@ -207,9 +207,9 @@ def evaluate(
                 _WORKER.clear()
         else:
             jobs = [(str(path), task, config, one, ablate, video_dir) for one in seeds]
-            with workers_ignore_the_working_directory():
-                pool = multiprocessing.get_context("spawn").Pool(workers)
-            with pool:
+            # For the pool's whole life: it starts a new worker in place of one that died.
+            with workers_ignore_the_working_directory(), \
+                    multiprocessing.get_context("spawn").Pool(workers) as pool:
                 results = []
                 for result in pool.imap_unordered(_run_one, jobs):
                     results.append(result)
