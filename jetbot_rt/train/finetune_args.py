@@ -36,8 +36,9 @@ class FinetuneArgs:
 
     def validate(self) -> None:
         for name in ("steps", "batch_size", "sim_frames", "label_delay"):
-            if getattr(self, name) < (0 if name in ("sim_frames", "label_delay") else 1):
-                raise OptionError(name, f"must be positive, got {getattr(self, name)}")
+            least = 0 if name in ("sim_frames", "label_delay") else 1
+            if getattr(self, name) < least:
+                raise OptionError(name, f"must be >= {least}, got {getattr(self, name)}")
         if not 0.0 <= self.sim_share < 1.0:
             raise OptionError("sim_share", f"must be in [0, 1), got {self.sim_share:g}")
         if not self.learning_rate > 0:
