@@ -3,6 +3,7 @@ at between every two, and a start-up step in a worker that a stop request ends a
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 
@@ -59,6 +60,20 @@ def test_a_stop_between_two_phases_cancels_the_start_before_the_next() -> None:
     stop = Recorded("a", log, on_enter=lambda: latch.trip("SIGTERM received", fault=False))
     with pytest.raises(Cancelled):
         life.run([stop, Recorded("b", log)])
+    life.unwind()
+    assert log == ["enter a", "exit a"]
+
+
+def test_a_signal_whose_interrupt_was_swallowed_during_the_start_ends_it_before_the_next_phase(
+        monkeypatch) -> None:
+    from jetbot_rt.service import signals
+
+    log: list[str] = []
+    life = Lifecycle(SafeStopLatch())
+    swallow = Recorded("a", log, on_enter=lambda: signals._raised.append(signal.SIGINT))
+    monkeypatch.setattr(signals, "_raised", [])
+    with pytest.raises(signals.Interrupted, match="SIGINT"):
+        life.run([swallow, Recorded("b", log)])
     life.unwind()
     assert log == ["enter a", "exit a"]
 
