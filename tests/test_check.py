@@ -105,3 +105,16 @@ def test_a_slow_camera_is_called_slow_and_a_stalled_one_stalled(robot, source: s
     assert found, camera
     for got, want in zip(found.groups(), parts[1::2]):
         assert float(got) == pytest.approx(float(want), abs=0.5), camera
+
+
+def test_a_signal_lost_during_the_imports_stops_the_spin_before_the_board_opens(
+        monkeypatch) -> None:
+    import signal
+
+    from jetbot_rt.commands.check import spin_wheels
+    from jetbot_rt.config.sections import Config
+    from jetbot_rt.service import signals
+
+    monkeypatch.setattr(signals, "_raised", [signal.SIGINT])  # raised, then swallowed
+    with pytest.raises(signals.Interrupted):  # opening the default board would fail otherwise
+        spin_wheels(Config())

@@ -75,6 +75,7 @@ def spin_wheels(config: Config) -> str:
     # Every signal that would end or suspend the process raises ``Interrupted`` here (the
     # CLI's handler): the pulse ends in the finally below; a second signal cannot cut the
     # stop short (deferred), it is raised once the board is off.
+    signals.raise_if_swallowed()  # a signal lost during the imports: no pulse
     drive = open_drive(config.motors)
     try:
         left_sign, right_sign = config.actions.sign  # forward as the runtime drives it

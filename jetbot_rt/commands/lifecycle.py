@@ -62,14 +62,12 @@ class Lifecycle:
 
     def check(self) -> None:
         """For a phase with a long step inside it: end the start now if a stop was asked for,
-        or if a signal's ``Interrupted`` was raised during the start and did not end it: C code
-        can turn it into an ``ImportError`` that an optional import then catches (seen once
-        under load: a SIGINT 0.15 s into ``run`` lost, and the run drove its whole duration)."""
+        or if a signal's ``Interrupted`` was raised during the start and did not end it
+        (``signals.raise_if_swallowed``; seen once under load: a SIGINT 0.15 s into ``run``
+        lost, and the run drove its whole duration)."""
         if self.latch.tripped:
             raise Cancelled
-        swallowed = signals.raised_first()
-        if swallowed is not None:
-            raise signals.Interrupted(swallowed)
+        signals.raise_if_swallowed()
 
     def unwind(self) -> None:
         """Every entered phase's ``exit``, the last entered first; each phase at most once."""

@@ -205,6 +205,16 @@ def raised_first() -> int | None:
     return _raised[0] if _raised else None
 
 
+def raise_if_swallowed() -> None:
+    """Raise ``Interrupted`` again if one was raised in this process and the command went on:
+    code it was raised in swallowed it (OpenCV's loader has a bare ``except:``; C code can turn
+    it into an ``ImportError`` that an optional import catches). For the points before a
+    command moves a motor."""
+    signum = raised_first()
+    if signum is not None:
+        raise Interrupted(signum)
+
+
 class _SendAgain:
     """``sys.unraisablehook`` that does not let Python swallow an ``Interrupted``.
 
