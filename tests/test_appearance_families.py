@@ -107,8 +107,8 @@ def test_the_held_out_looks_are_never_drawn_by_the_training_randomization():
 
 
 def test_the_families_come_after_every_earlier_draw():
-    base, off = SimConfig(), Config().randomize
-    on = dataclasses.replace(off, appearance=True)
+    base, on = SimConfig(), Config().randomize
+    off = dataclasses.replace(on, appearance=False)
     for seed in range(5):
         plain = sample(base, off, np.random.default_rng(seed))
         looks = sample(base, on, np.random.default_rng(seed))

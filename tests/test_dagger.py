@@ -25,7 +25,8 @@ def test_expert_turns_toward_the_goal_and_stops_short_of_it():
     assert ahead_left[1] > ahead_left[0] > 0 and ahead_right[0] > ahead_right[1] > 0
     for side in (0.5, -0.5):  # out of view: turns left backing away, whichever side it is on
         out_of_view = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([0.2, side]), 0.0)
-        assert out_of_view.tolist() == pytest.approx([-1.0, 0.3])
+        assert out_of_view.tolist() == pytest.approx([EXPERT.search_left, EXPERT.search_right])
+        assert EXPERT.search_left < 0 < EXPERT.search_right
     behind = EXPERT.act(np.array([0.0, 0.0, 0.0]), np.array([-0.5, 0.01]), 0.0)
     straight = EXPERT.act(np.array([0.0, 0.0, math.pi / 2]), np.array([0.0, 1.0]), 0.0)
     assert straight.tolist() == pytest.approx([1.0, 1.0])
@@ -183,3 +184,35 @@ def test_ctrl_c_saves_exports_and_resumes_from_the_iteration(tmp_path, monkeypat
     assert dagger.train(args)["updates"] == 2
     with (tmp_path / "metrics.csv").open() as handle:
         assert [r["iteration"] for r in csv.DictReader(handle)] == ["1", "2"]
+
+
+def test_the_expert_labels_the_state_the_frame_shows():
+    """With a camera latency, a frame at tick n shows the world of tick n - latency / period:
+    the expert's label of it reads that tick's info (the reset's before the episode got there);
+    --expert-sees now reads tick n's."""
+    from jetbot_rt.config.sections import from_dict
+    from jetbot_rt.train.dagger_sampler import LabelSampler
+    from jetbot_rt.train.env import JetbotEnv
+    from jetbot_rt.train.hyperparams import ModelConfig
+    from jetbot_rt.train.model import ActorCritic
+
+    class Recorder:  # an expert that returns the sim_time of the info it was given
+        reads = ("sim_time",)
+
+        def label(self, info):
+            return np.array([info["sim_time"], 0.0], dtype=np.float32)
+
+    config = from_dict({"sim": {"camera_latency": 0.1}, "randomize": {"enabled": False}})
+    env = JetbotEnv("seek", config)
+    sampler = LabelSampler(env, ModelConfig(), 0)
+    weights = {k: v.detach().numpy() for k, v in ActorCritic(ModelConfig()).state_dict().items()}
+    ticks = round(0.1 / env.period)
+    try:
+        for sees, lag in (("frame", ticks), ("now", 0)):
+            sampler.reset(seed=0)
+            labels = sampler.collect_labelled(weights, 20, (1, 0), 1.0, 0.0, Recorder(),
+                                              sees)["labels"][:20, 0]
+            times = np.arange(20) * env.period
+            assert labels == pytest.approx(np.maximum(times - lag * env.period, 0.0), abs=1e-6)
+    finally:
+        env.close()

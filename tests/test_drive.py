@@ -113,12 +113,13 @@ def test_a_closed_terminal_while_a_person_drives_stops_the_wheels_with_exit_3(tm
 def test_the_scripted_person_takes_over_from_a_failing_policy_and_the_recording_marks_it(
         tmp_path):
     world = tmp_path / "hidden.toml"
-    world.write_text("[sim]\ntask = \"seek\"\ncamera_vfov_deg = 80.0\ncamera_pitch_deg = 32.0\n"
-                     "block_color = [0.85, 0.4, 0.1]\nfloor_color = [0.3, 0.32, 0.3]\n"
-                     "floor_texture = \"plain\"\n[randomize]\nenabled = false\n")
+    world.write_text("[sim]\ntask = \"seek\"\nlens = \"pinhole\"\ncamera_vfov_deg = 80.0\n"
+                     "camera_pitch_deg = 32.0\nblock_color = [0.85, 0.4, 0.1]\n"
+                     "floor_color = [0.3, 0.32, 0.3]\nfloor_texture = \"plain\"\n"
+                     "[randomize]\nenabled = false\n")
     result = subprocess.run(
         [JETBOT_RT, "drive", "--backend", "sim", "--input", "scripted", "--config", str(world),
-         "--policy", str(bundled_policy_path("seek")), "--duration", "2",
+         "--policy", str(bundled_policy_path("seek")), "--duration", "4",
          "--record", str(tmp_path / "rec")],
         capture_output=True, text=True, timeout=HANG_S)
     assert result.returncode == 0, result.stderr
@@ -127,7 +128,7 @@ def test_the_scripted_person_takes_over_from_a_failing_policy_and_the_recording_
     assert recording.meta["drive"]["input"] == "scripted"
     assert recording.meta["drive"]["reaction_s"] > 0  # the stand-in person's settings
     drivers = {t["driver"] for t in recording.ticks}
-    assert drivers == {"policy", "human"}, "2 s in that world need a takeover"
+    assert drivers == {"policy", "human"}, "4 s in that world need a takeover"
     human = [t for t in recording.ticks if t["driver"] == "human"]
     assert all(t["human"] is not None and t["mu"] == pytest.approx(t["human"], abs=1e-4)
                for t in human)

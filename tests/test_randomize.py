@@ -15,7 +15,9 @@ from jetbot_rt.sim.look_draws import LOOK_KEYS
 from jetbot_rt.sim.randomize import DRAWN, params, sample, sim_toml
 from jetbot_rt.train.env import JetbotEnv
 
-CONFIG = {"actions": {"max_speed": 0.4}}  # above the default dead-band range (0..0.3)
+# max_speed above the default dead-band range (0..0.3); the appearance families have their own
+# tests (test_appearance_families.py)
+CONFIG = {"actions": {"max_speed": 0.4}, "randomize": {"appearance": False}}
 
 
 @pytest.fixture(scope="module")

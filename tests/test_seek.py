@@ -93,7 +93,9 @@ def ideal():
 
 def _colour_pixels(frame: np.ndarray) -> dict[str, int]:
     r, g, b = (frame[:, :, i].astype(int) for i in range(3))
-    return {"red": int((r - np.maximum(g, b) > 50).sum()),
+    # red by ratio: a dim room with a dark exposure leaves the goal red but dark (no floor is
+    # drawn within 0.31 of the goal's saturation, so none has r > 2 max(g, b))
+    return {"red": int(((r > 2 * np.maximum(g, b)) & (r > 30)).sum()),
             "green": int((g - np.maximum(r, b) > 30).sum()),
             "blue": int((b - np.maximum(r, g) > 50).sum())}
 

@@ -22,8 +22,13 @@ SIZE = (64, 64)
 DUTIES = [(0.3, 0.3)] * 12 + [(0.3, -0.2)] * 6  # drives, then turns: the view moves
 
 
+PINHOLE = SimConfig(lens="pinhole")
+"""The ideal [sim] through the pinhole: these tests read the renderer's own projection (the
+fisheye's warp of it: tests/test_lens.py)."""
+
+
 def sim(**changes) -> SimConfig:
-    return dataclasses.replace(SimConfig(), **changes)
+    return dataclasses.replace(PINHOLE, **changes)
 
 
 def run(config: SimConfig, duties=DUTIES, camera: str = "frame"):
@@ -43,7 +48,7 @@ def run(config: SimConfig, duties=DUTIES, camera: str = "frame"):
 
 @pytest.fixture(scope="module")
 def ideal():
-    return run(SimConfig())
+    return run(PINHOLE)
 
 
 def straight(config: SimConfig, duty: float, seconds: float) -> np.ndarray:
@@ -142,7 +147,7 @@ def test_stall_torque_makes_torque_scale_with_duty():
 
 
 def test_dynamics_knobs_leave_the_pixels_of_a_pose_alone():
-    a = JetbotWorld(SimConfig(), image_size=SIZE)
+    a = JetbotWorld(PINHOLE, image_size=SIZE)
     b = JetbotWorld(sim(wheel_gain=[0.9, 1.1], deadband=0.05, latency=0.05, stall_torque=0.08),
                     image_size=SIZE)
     try:
@@ -158,7 +163,7 @@ def test_dynamics_knobs_leave_the_pixels_of_a_pose_alone():
 def test_camera_latency_shows_the_world_that_long_ago(ideal, latency, substeps):
     poses, frames = run(sim(camera_latency=latency))
     assert np.array_equal(poses, ideal[0])  # the robot moves exactly as before
-    world = JetbotWorld(SimConfig(), image_size=SIZE)  # the ideal camera, sub-step by sub-step
+    world = JetbotWorld(PINHOLE, image_size=SIZE)  # the ideal camera, sub-step by sub-step
     try:
         shown = {0: world.render()}
         for left, right in DUTIES:
@@ -238,7 +243,7 @@ def test_defaults_render_like_the_urdf_scene():
     set, PyBullet's default light, the URDF's camera mount)."""
     import pybullet as p
 
-    world = JetbotWorld(SimConfig(), image_size=SIZE)
+    world = JetbotWorld(PINHOLE, image_size=SIZE)
     try:
         c = world._client
         state = p.getLinkState(world._robot, 3, computeForwardKinematics=True,

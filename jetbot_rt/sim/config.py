@@ -101,11 +101,11 @@ class SimKnobs:
     """Duty below which a wheel does not turn (gearbox friction); above it the speed is
     motor_gain * (|duty| - deadband)."""
     latency: float = field(default=0.0, metadata=meta(
-        within(0, 1, " s"), randomized((0.0, 0.1), 0, 1, "value", " s"),
+        within(0, 1, " s"), randomized((0.0, 0.2), 0, 1, "value", " s"),
     ))
     """Seconds from a duty write to the motor acting on it (whole physics sub-steps)."""
     camera_latency: float = field(default=0.0, metadata=meta(
-        within(0, 1, " s"), randomized((0.0, 0.1), 0, 1, "value", " s"),
+        within(0, 1, " s"), randomized((0.0, 0.12), 0, 1, "value", " s"),
     ))
     """Seconds from the world's state to the frame that shows it (whole physics sub-steps)."""
     stall_torque: Optional[float] = field(default=None, metadata=meta(
@@ -187,10 +187,11 @@ class SimKnobs:
         within(0, 3), randomized((0.8, 1.2), 0, 3, "value"),
     ))
     """Scales each pixel's distance from mid-grey."""
-    lens: str = field(default="pinhole", metadata=one_of(LENSES))
-    """The camera's projection: "pinhole" (``camera_vfov_deg``) or "fisheye": the OpenCV
+    lens: str = field(default="fisheye", metadata=one_of(LENSES))
+    """The camera's projection: "fisheye" (the JetBot's IMX219 lens, default): the OpenCV
     fisheye model (``lens_focal``, ``lens_center``, ``lens_k1``..``lens_k4``), rendered by
-    warping a wider pinhole render (docs/SIM.md, "The lens")."""
+    warping a wider pinhole render (docs/SIM.md, "The lens"); or "pinhole"
+    (``camera_vfov_deg``), the simulator's view before the lens was modelled."""
     lens_focal: float = field(default=1.0194, metadata=meta(
         within(0.2, 5.0),
         randomized((0.93, 1.07), 0.5, 2, "factor", late=True,
@@ -336,7 +337,7 @@ class RandomizeLook:
     family and colour, the walls' colours); only with ``appearance = true``, after every
     other draw, so that without it every seed draws what it drew before."""
 
-    appearance: bool = False
+    appearance: bool = True
     """Draw the appearance families per episode (docs/SIM.md, "Appearance families")."""
     floor_families: List[str] = field(default_factory=lambda: list(TRAINING_FLOORS),
                                       metadata=_families(FLOOR_TEXTURES))

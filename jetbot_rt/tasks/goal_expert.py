@@ -34,18 +34,24 @@ class GoalExpert:
     """Turn command per rad of bearing error."""
     forward_gain: float = 4.0
     """Forward command per m beyond the stop point."""
-    search_bearing_deg: float = 30.0
-    """Beyond this bearing error the goal is out of the camera's view (its half field of view
-    is 41 degrees nominal, 34 at the narrowest randomized one): turn left (``search_left``,
-    ``search_right``), whichever side the goal is on. A student that sees only the frame
-    cannot know that side, and labels that said "turn toward it" averaged to zero there: it
-    stalled."""
-    search_left: float = -1.0
+    search_bearing_deg: float = 40.0
+    """Beyond this bearing error the expert searches: turns left (``search_left``,
+    ``search_right``), whichever side the goal is on. The fisheye shows 49 degrees either
+    side at the policy's size: 40 leaves the goal's picture in view where the labels say
+    "turn toward it" (a student that sees only the frame cannot know the side of a goal out of
+    view, and labels that said "turn toward it" there averaged to zero: it stalled). Through
+    the pinhole (34 degrees at the narrowest randomized field of view) use 30 (the DAgger
+    option ``--search-bearing-deg``). With 150 ms motor plus 100 ms camera latency and the
+    expert acting on what the frame shows, 30 overshot the goal out of the tracking band,
+    sent the search round the whole circle and succeeded in 5 of 20 episodes; 40 with the
+    slower search below, 38 of 40 (docs/TRAINING.md, "Training seek by DAgger")."""
+    search_left: float = -0.6
     """The search's left wheel command."""
-    search_right: float = 0.3
-    """The search's right wheel command: with the left wheel's -1 a turn to the left that
+    search_right: float = 0.2
+    """The search's right wheel command: with the left wheel's -0.6 a turn to the left that
     backs away (a spin in place, (-1, 1), would sweep the robot's front into a block that
-    sits too close to be seen)."""
+    sits too close to be seen); slow enough that 250 ms of latency stops it inside the
+    tracking band (at (-1, 0.3) it swept past)."""
     min_forward: float = 0.75
     """The slowest forward command while driving: the dead-band (up to 0.3 of duty) eats
     0.6 of the command at max_speed 0.5, so less would stall."""

@@ -38,8 +38,8 @@ METRIC_FIELDS = ("iteration", "global_step", "wall_s", "collect_s", "regress_s",
 NO_SHAPING = Shaping("none", 0.0, 0.0, 0.0, 0.0)
 OUTCOME_INFO = ("is_success",)
 """The info keys DAgger reads besides the expert's inputs (its ``reads``)."""
-EXPERT_SETTINGS = ("stop_distance", "min_forward", "search_left", "search_right",
-                   "backoff_distance")
+EXPERT_SETTINGS = ("stop_distance", "min_forward", "search_bearing_deg", "search_left",
+                   "search_right", "backoff_distance")
 """The DAgger options that tune an expert that has fields of these names (the goal tasks')."""
 
 
@@ -138,7 +138,7 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Any, data: Dataset,
     weights = {name: w.detach().cpu().numpy().copy() for name, w in model.state_dict().items()}
     results = envs.unwrapped.call(
         "collect_labelled", weights, -(-args.steps_per_iteration // n),
-        (args.seed, iteration), beta, args.expert_noise, expert)
+        (args.seed, iteration), beta, args.expert_noise, expert, args.expert_sees)
     outcomes: dict[bool, list[float]] = {True: [], False: []}
     steps = 0
     for result in results:

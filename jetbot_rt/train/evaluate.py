@@ -22,6 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from jetbot_rt.config.sections import Config
@@ -137,6 +138,8 @@ def _run_one(job: tuple[str, str, Config, int, str | None, str | None]) -> dict:
     if _WORKER.get("key") != key:
         if "env" in _WORKER:
             _WORKER["env"].close()
+        if multiprocessing.parent_process() is not None:
+            cv2.setNumThreads(1)  # one core per pool worker (sampler.PolicySampler says why)
         policy = load_policy(path, config, ablate=ablate)
         env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
                         image_size=(policy.spec.width, policy.spec.height))

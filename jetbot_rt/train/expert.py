@@ -32,16 +32,20 @@ def task_expert(task: str | Task, settings: dict[str, Any] | None = None) -> Exp
 
 def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek") -> float:
     """The expert's own success rate on the evaluation's episodes (seed + i, the task's
-    randomization on): what the student can at best reach."""
+    randomization on), acting on the state each frame shows (DAgger's ``--expert-sees
+    frame``): what the student can at best reach."""
+    from jetbot_rt.train.dagger_sampler import FrameState
     from jetbot_rt.train.env import JetbotEnv
 
     env, expert, successes = JetbotEnv(task), task_expert(task), 0
     try:
         for i in range(episodes):
             _, info = env.reset(seed=seed + i)
+            seen = FrameState(info, env.period)
             done = False
             while not done:
-                _, _, terminated, truncated, info = env.step(expert.label(info))
+                _, _, terminated, truncated, info = env.step(expert.label(seen.info))
+                seen.push(info)
                 done = terminated or truncated
             successes += bool(info["is_success"])
     finally:

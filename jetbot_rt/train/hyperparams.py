@@ -19,6 +19,9 @@ from jetbot_rt.train.env import POLICY_IMAGE_SIZE
 from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.wrappers import REWARD_TRANSFORMS, Shaping
 
+EXPERT_SEES = ("frame", "now")
+"""``--expert-sees``: the state DAgger's expert labels (``dagger_sampler.FrameState``)."""
+
 LEGACY_IMAGE_SIZE, LEGACY_POOL = 224, 4
 """What a model config without ``image_size`` means: networks exported with a 224-pixel input
 that they pooled by 4 (``scripts/forward_to_56.py`` converts one)."""
@@ -438,6 +441,10 @@ class DAggerArgs(CurriculumOptions):
     beta share): states off the expert's path, with their corrections."""
     beta: float = 0.5
     """Share of episodes the expert drives in iteration 1; halves every iteration."""
+    expert_sees: str = "frame"
+    """The state the expert labels and drives on: "frame", the one the frame shows (the
+    camera's latency ago: labels the student can read off its frame) or "now", the true
+    state at the frame's delivery (``dagger_sampler.FrameState``)."""
     train_samples: int = 16_000
     """Frames regressed on after each iteration, in shuffled passes over the aggregate (a
     fixed cost: epochs over a growing aggregate would make each iteration slower than the
@@ -462,6 +469,9 @@ class DAggerArgs(CurriculumOptions):
     min_forward: float = Expert.min_forward
     """The expert's slowest forward command while driving (``Expert``); times max_speed it
     must stay above the dead-band it trains with."""
+    search_bearing_deg: float = Expert.search_bearing_deg
+    """Degrees; the expert searches beyond this bearing error (``Expert``; 30 through the
+    pinhole lens)."""
     search_left: float = Expert.search_left
     """The expert's left wheel command while the goal is out of view (``Expert``)."""
     search_right: float = Expert.search_right
@@ -494,6 +504,9 @@ class DAggerArgs(CurriculumOptions):
                                          f"{self.workers}")
         if self.snapshots < 0:
             raise OptionError("snapshots", f"must be >= 0, got {self.snapshots}")
+        if self.expert_sees not in EXPERT_SEES:
+            raise OptionError("expert_sees", f"must be one of {', '.join(EXPERT_SEES)}, got "
+                                             f"{value_text(self.expert_sees)}")
 
 
 def dagger_args(task: str, overrides: dict[str, Any] | None = None) -> DAggerArgs:

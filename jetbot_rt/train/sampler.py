@@ -22,6 +22,7 @@ import multiprocessing
 from collections.abc import Callable
 from typing import Any
 
+import cv2
 import gymnasium as gym
 import numpy as np
 import torch
@@ -51,6 +52,9 @@ class PolicySampler(gym.Wrapper):
         # Built with the env, as the worker starts (~0.3 s of CPU), not in the first rollout.
         if multiprocessing.parent_process() is not None:
             torch.set_num_threads(1)  # one core per worker
+            # and OpenCV's (the lens's remap, the looks' filters): its default pool of one
+            # thread per core in every worker put the 1-min load at 115 on 16 cores
+            cv2.setNumThreads(1)
         options = ort.SessionOptions()
         options.intra_op_num_threads = options.inter_op_num_threads = 1
         options.log_severity_level = 3  # no warning that the weights are inputs
