@@ -18,9 +18,6 @@ pytest.importorskip("gymnasium")
 pytest.importorskip("pybullet")
 
 SEEDS = range(10_000, 10_004)
-EXPERT_FRAME = (8, 8)
-"""What these drivers read is the env's info, never the frame: the smallest render (half the
-time of a step at 56x56 through the fisheye and the looks)."""
 
 
 def run_episode(env: Any, seed: int, act: Any) -> dict[str, Any]:
@@ -34,8 +31,9 @@ def run_episode(env: Any, seed: int, act: Any) -> dict[str, Any]:
 
 def successes(task: str, act: Any) -> int:
     from jetbot_rt.train.env import JetbotEnv
+    from jetbot_rt.train.expert import EXPERT_FRAME
 
-    env = JetbotEnv(task, image_size=EXPERT_FRAME)
+    env = JetbotEnv(task, image_size=EXPERT_FRAME)  # these drivers read the info, not pixels
     try:
         return sum(bool(run_episode(env, seed, act)["is_success"]) for seed in SEEDS)
     finally:

@@ -34,9 +34,12 @@ class FrameState:
     the frame, and the expert driving on them is the controller the student can become (seek
     with 150 ms motor plus 100 ms camera latency: 38 of 40 episodes; docs/TRAINING.md)."""
 
-    def __init__(self, reset_info: dict[str, Any], period: float) -> None:
+    def __init__(self, reset_info: dict[str, Any], period: float | None) -> None:
+        """``period``: the control period (s); None: no lag, the state at the frame's
+        delivery (``--expert-sees now``)."""
         latency = float(reset_info.get("sim_params", {}).get("camera_latency", 0.0))
-        self._infos = deque([reset_info], maxlen=round(latency / period) + 1)
+        lag = 0 if period is None else round(latency / period)
+        self._infos = deque([reset_info], maxlen=lag + 1)
 
     def push(self, info: dict[str, Any]) -> None:
         self._infos.append(info)
@@ -72,7 +75,7 @@ class LabelSampler(PolicySampler):
         frames: list[np.ndarray] = []
         labels: list[np.ndarray] = []
         outcomes: list[tuple[bool, bool]] = []
-        period = float(self.env.unwrapped.period) if expert_sees == "frame" else float("inf")
+        period = float(self.env.unwrapped.period) if expert_sees == "frame" else None
         while len(frames) < min_steps:
             by_expert = bool(rng.random() < beta)
             seen = FrameState(info, period)

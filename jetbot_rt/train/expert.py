@@ -30,6 +30,11 @@ def task_expert(task: str | Task, settings: dict[str, Any] | None = None) -> Exp
     return expert
 
 
+EXPERT_FRAME = (8, 8)
+"""The frame size of an env only an expert drives: it reads the env's info, never pixels, so
+the smallest render (half a step's time against 56x56 through the fisheye and the looks)."""
+
+
 def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek") -> float:
     """The expert's own success rate on the evaluation's episodes (seed + i, the task's
     randomization on), acting on the state each frame shows (DAgger's ``--expert-sees
@@ -37,8 +42,7 @@ def evaluate_expert(episodes: int = 100, seed: int = 10_000, task: str = "seek")
     from jetbot_rt.train.dagger_sampler import FrameState
     from jetbot_rt.train.env import JetbotEnv
 
-    # the expert reads no pixels: the smallest frame (half the step time at 56x56)
-    env, expert, successes = JetbotEnv(task, image_size=(8, 8)), task_expert(task), 0
+    env, expert, successes = JetbotEnv(task, image_size=EXPERT_FRAME), task_expert(task), 0
     try:
         for i in range(episodes):
             _, info = env.reset(seed=seed + i)

@@ -52,8 +52,9 @@ class PolicySampler(gym.Wrapper):
         # Built with the env, as the worker starts (~0.3 s of CPU), not in the first rollout.
         if multiprocessing.parent_process() is not None:
             torch.set_num_threads(1)  # one core per worker
-            # and OpenCV's (the lens's remap, the looks' filters): its default pool of one
-            # thread per core in every worker put the 1-min load at 115 on 16 cores
+            # and OpenCV's (the lens's remap, the looks' filters), whose default is a pool of
+            # one thread per core in every worker: three trainings of 5-6 workers each read a
+            # 1-min load average of 115 on 16 cores without this, 13-19 with it
             cv2.setNumThreads(1)
         options = ort.SessionOptions()
         options.intra_op_num_threads = options.inter_op_num_threads = 1
