@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from jetbot_rt.tasks import BUILTIN, Box, Tape, Wall, available, load_task
-from jetbot_rt.tasks.avoid import ROBOT_RADIUS, Avoid, Rectangles, rectangles_of
+from jetbot_rt.tasks.avoid import RAY_ANGLES, ROBOT_RADIUS, Avoid, Rectangles, rectangles_of
 from jetbot_rt.tasks.follow import MIN_TURN_RADIUS, TRACK, Follow, Track, luminance, min_turn_radius
 from jetbot_rt.tasks.scene import ROOM_HALF_SIZE, Scene, rgb
 
@@ -105,6 +105,55 @@ def test_the_avoid_rays_measure_the_free_distance_to_a_grown_box() -> None:
     assert behind[len(behind) // 2] == pytest.approx(min(1.0, ROOM_HALF_SIZE - ROBOT_RADIUS))
     inside = Rectangles(np.array([[0.0, 0.0]]), np.array([[0.2, 0.2]]), np.array([0.3]))
     assert np.all(inside.ranges(0.05, 0.0, 1.0) == 0.0)
+
+
+class ClutterWorld:
+    """A world view with one clutter piece (what ``JetbotWorld.clutter`` returns)."""
+
+    def __init__(self, *pieces: Box) -> None:
+        self.pieces = pieces
+
+    def clutter(self) -> tuple[Box, ...]:
+        return self.pieces
+
+
+def test_the_avoid_rays_see_the_worlds_clutter_as_obstacles() -> None:
+    scene = Scene((0.0, 0.0, 0.0), ())
+    cabinet = Box((0.7, 0.0), (0.2, 0.4, 0.5))
+    straight = len(RAY_ANGLES) // 2
+    assert rectangles_of(scene).ranges(0.0, 0.0, 0.0)[straight] == pytest.approx(1.0)
+    seen = rectangles_of(scene, ClutterWorld(cabinet)).ranges(0.0, 0.0, 0.0)
+    assert seen[straight] == pytest.approx(0.7 - 0.1 - ROBOT_RADIUS)
+
+
+def test_the_worlds_clutter_footprints_are_where_its_bodies_stand() -> None:
+    from jetbot_rt.sim.config import SimConfig
+    from jetbot_rt.sim.pybullet_import import import_pybullet
+    from jetbot_rt.sim.world import JetbotWorld
+
+    p = import_pybullet()
+    scene = Avoid().scene(np.random.default_rng(5), True)
+    world = JetbotWorld(SimConfig(clutter=6, look_seed=3), image_size=(8, 8))
+    try:
+        world.reset(scene=scene)
+        footprints = world.clutter()
+        assert len(footprints) >= 3
+        bodies = world._bodies[len(scene.pieces):]  # the clutter's, built after the scene's
+        assert len(bodies) == len(footprints)
+        for box, body in zip(footprints, bodies):
+            low, high = p.getAABB(body, physicsClientId=world._client)
+            for corner in _corners(box):  # the footprint lies within the body's bounds
+                assert low[0] - 1e-3 <= corner[0] <= high[0] + 1e-3
+                assert low[1] - 1e-3 <= corner[1] <= high[1] + 1e-3
+    finally:
+        world.close()
+
+
+def _corners(box: Box) -> np.ndarray:
+    c, s = math.cos(box.yaw), math.sin(box.yaw)
+    hx, hy = box.size[0] / 2 * 0.99, box.size[1] / 2 * 0.99
+    local = np.array([(hx, hy), (-hx, hy), (-hx, -hy), (hx, -hy)])
+    return local @ np.array([[c, s], [-s, c]]) + np.array(box.xy)
 
 
 def test_leaving_the_track_fails_the_episode_and_ends_it() -> None:

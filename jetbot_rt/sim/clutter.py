@@ -44,6 +44,14 @@ class Furniture:
             return self.size[0]
         return math.hypot(self.size[0], self.size[1]) / 2
 
+    def footprint(self) -> Box:
+        """The piece as a task's ``Box`` of its footprint (a cylinder as the square around
+        it): what a task's geometry (``WorldView.clutter``) sees of it."""
+        if self.kind == "cylinder":
+            side = 2 * self.size[0]
+            return Box(self.xy, (side, side, self.size[2]), "grey")
+        return Box(self.xy, self.size, "grey", self.yaw)
+
 
 def _scene_points(scene: Scene) -> list[tuple[np.ndarray, float]]:
     """Points of the task's pieces, each with how far the piece reaches around it (m)."""

@@ -194,10 +194,15 @@ def shadow_darkness(sim: SimConfig) -> float:
     return AMBIENT / (AMBIENT + DIFFUSE * sin_elevation)
 
 
-def dress(client: int, room: int, scene: Scene, sim: SimConfig) -> list[int]:
+def clutter_of(scene: Scene, sim: SimConfig) -> list[Furniture]:
+    """The ``[sim] clutter`` pieces around ``scene`` (from ``[sim] look_seed``)."""
+    return furniture(sim.clutter, sim.look_seed, scene)
+
+
+def dress(client: int, room: int, scene: Scene, sim: SimConfig,
+          clutter: list[Furniture]) -> list[int]:
     """Textures on the room (when ``textured(sim)``, with the shadows of fixed things baked
-    into the floor) and ``[sim] clutter`` pieces around ``scene``; the clutter's bodies."""
-    clutter = furniture(sim.clutter, sim.look_seed, scene)
+    into the floor) and the ``clutter`` pieces (``clutter_of``); the clutter's bodies."""
     if textured(sim):
         shadows = (shadow_polygons(scene, clutter, list(sim.light_direction))
                    if sim.shadows else [])

@@ -176,7 +176,8 @@ class JetbotWorld:
                 self._pieces[piece.name] = body
                 self._starts[piece.name] = self._start_xy(piece, body)
         self._scene = scene
-        self._bodies.extend(looks.dress(c, self._room, scene, room_sim))  # textures, clutter
+        self._clutter = looks.clutter_of(scene, room_sim)
+        self._bodies.extend(looks.dress(c, self._room, scene, room_sim, self._clutter))
         info = p.getDynamicsInfo(self._robot, -1, physicsClientId=c)
         self._com_to_link = p.invertTransform(info[3], info[4], physicsClientId=c)
         # Free-wheeling until the first step: PyBullet's default joint motor would brake.
@@ -400,6 +401,11 @@ class JetbotWorld:
         # The room is one body: its floor carries the wheels (normals vertical), its walls not.
         return any(abs(point[7][2]) < 0.5
                    for point in p.getContactPoints(self._robot, self._room, physicsClientId=c))
+
+    def clutter(self) -> tuple[Box, ...]:
+        """The footprints of the pieces ``reset`` added that are no part of the task's scene
+        (``[sim] clutter``; a cylinder as the square around it)."""
+        return tuple(piece.footprint() for piece in self._clutter)
 
     def has_piece(self, name: str) -> bool:
         return name in self._pieces

@@ -14,7 +14,7 @@ from typing import Any, ClassVar, Protocol, Tuple
 
 import numpy as np
 
-from jetbot_rt.tasks.scene import Scene
+from jetbot_rt.tasks.scene import Box, Scene
 
 
 class WorldView(Protocol):
@@ -39,7 +39,13 @@ class WorldView(Protocol):
         """From the robot's axle midpoint to a piece's centre, in 3-D (m)."""
 
     def touching(self, name: str | None = None) -> bool:
-        """Whether the robot touches the piece (None: any piece or the room's walls)."""
+        """Whether the robot touches the piece (None: any piece, the clutter or the room's
+        walls)."""
+
+    def clutter(self) -> tuple[Box, ...]:
+        """The footprints of what the simulator put in the room beside the task's scene
+        (``[sim] clutter``: furniture at the walls; a cylinder as the square around it). The
+        robot collides with them; a task whose success is "touch nothing" must see them."""
 
 
 class Expert(Protocol):

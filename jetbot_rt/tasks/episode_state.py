@@ -26,7 +26,8 @@ class Episode(Generic[Derived]):
 
     scene: Scene
     derived: Derived
-    """The task's precomputed geometry of ``scene`` (a track, obstacle rectangles)."""
+    """The task's precomputed geometry of ``scene`` and the world (a track, obstacle
+    rectangles)."""
     last_xy: tuple[float, float] | None = None
     path_length: float = 0.0
     """m; the axle midpoint's travelled path, summed over steps."""
@@ -44,9 +45,11 @@ class Episode(Generic[Derived]):
 
 
 class EpisodeMemory(Generic[Derived]):
-    """``episode(scene, world)``: the world's record for this episode, made new as needed."""
+    """``episode(scene, world)``: the world's record for this episode, made new as needed;
+    ``derive(scene, world)`` computes its ``derived`` once per episode (a module-level
+    function: tasks travel to env workers pickled)."""
 
-    def __init__(self, derive: Callable[[Scene], Derived]) -> None:
+    def __init__(self, derive: Callable[[Scene, WorldView], Derived]) -> None:
         self._derive = derive
         self._records: WeakKeyDictionary[Any, Episode[Derived]] = WeakKeyDictionary()
         self._fallback: dict[int, Episode[Derived]] = {}
@@ -58,7 +61,7 @@ class EpisodeMemory(Generic[Derived]):
             record = self._fallback.get(id(world))
         if record is None or record.scene is not scene or world.sim_time == 0.0:
             derived = (record.derived if record is not None and record.scene is scene
-                       else self._derive(scene))
+                       else self._derive(scene, world))
             record = Episode(scene, derived)
             try:
                 self._records[world] = record

@@ -71,7 +71,7 @@ class Track:
         return self.points[i] + t * (self.points[(i + 1) % len(self.points)] - self.points[i])
 
 
-def track_of(scene: Scene) -> Track:
+def track_of(scene: Scene, world: WorldView | None = None) -> Track:
     tape = scene.piece(TRACK)
     assert isinstance(tape, Tape)
     return Track.of(np.asarray(tape.points, dtype=np.float64))
@@ -203,8 +203,12 @@ class FollowExpert:
     ahead along the track (``info["target_xy"]``, which the task computes), at a constant
     forward command."""
 
-    lookahead = 0.25
-    """m along the centre line (a class constant: the task computes the target with it)."""
+    lookahead = 0.15
+    """m along the centre line (a class constant: the task computes the target with it).
+    Pure pursuit cuts a bend's inside by more the farther it looks: at 0.25 m the expert ran
+    at a median 4.1 cm from the centre line over 30 randomized episodes (its largest offset
+    9.9 cm of the 12 cm a student may stray before it has left the track); at 0.15 m 1.7 cm
+    (largest 5.9 cm). With the left wheel 15 % weak: 4.9 and 1.7 cm."""
     min_forward: float = 0.8
     """The forward command: above the randomized dead-band's share (0.3 duty of 0.6)."""
     half_track: float = 0.055
