@@ -122,6 +122,21 @@ class Task:
         one), or None."""
         return None
 
+    critic_state_names: ClassVar[tuple[str, ...]] = ()
+    """What each value ``critic_state`` returns means, in order; its length is the width of
+    the state an asymmetric critic reads. Empty (the default): the task has no privileged
+    state, and ``jetbot-train train --critic state`` refuses it."""
+
+    def critic_state(self, info: dict[str, Any]) -> np.ndarray | None:
+        """The simulator's privileged state for an asymmetric critic (PPO's ``--critic
+        state``, Pinto et al. 2018): a float vector of ``len(critic_state_names)`` values,
+        each scaled to about unit size, computed from ``info`` -- ``outcome``'s keys plus
+        ``pose``, ``duty``, ``sim_time`` and ``sim_params`` (this episode's ``[sim]`` knobs,
+        randomized or not). Only the critic reads it, and only while training: the policy
+        still sees the camera image alone, and nothing of it reaches the exported ONNX.
+        Default: None (no privileged state)."""
+        return None
+
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if not cls.__dict__.get("name"):  # each class its own, never its base's

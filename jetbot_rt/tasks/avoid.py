@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from jetbot_rt.tasks.api import Task, WorldView
+from jetbot_rt.tasks.critic_state import COMMAND_NAMES, DYNAMICS_NAMES, commands, dynamics
 from jetbot_rt.tasks.episode_state import EpisodeMemory
 from jetbot_rt.tasks.scene import ROOM_HALF_SIZE, Box, Scene, Wall
 
@@ -221,6 +222,20 @@ class Avoid(Task):
 
     def expert(self) -> AvoidExpert:
         return AvoidExpert()
+
+    critic_state_names = (*(f"range_{i}" for i in range(len(RAY_ANGLES))), "path", "reach",
+                          *COMMAND_NAMES, *DYNAMICS_NAMES)
+
+    def critic_state(self, info: dict[str, Any]) -> np.ndarray:
+        """The expert's nine ray ranges (free distance to the grown obstacles over the
+        camera's +-40 degrees, in ``RAY_RANGE``), the path travelled and the farthest reach
+        from the start (in ``min_path`` and ``min_reach``, clipped to 2), the last wheel
+        commands and the episode's dynamics (``critic_state.py``)."""
+        ranges = np.asarray(info["ranges"], dtype=np.float64) / RAY_RANGE
+        path = min(float(info["path_length"]) / self.min_path, 2.0)
+        reach = min(float(info["reach"]) / self.min_reach, 2.0)
+        return np.array([*ranges, path, reach, *commands(info, self.max_speed),
+                         *dynamics(info)], dtype=np.float32)
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,13 @@ from typing import Any
 import numpy as np
 
 from jetbot_rt.tasks.api import Task, WorldView
+from jetbot_rt.tasks.critic_state import (
+    COMMAND_NAMES,
+    DYNAMICS_NAMES,
+    commands,
+    dynamics,
+    robot_frame,
+)
 from jetbot_rt.tasks.episode_state import EpisodeMemory
 from jetbot_rt.tasks.scene import ROOM_HALF_SIZE, Scene, Tape
 
@@ -195,6 +202,22 @@ class Follow(Task):
 
     def expert(self) -> FollowExpert:
         return FollowExpert()
+
+    critic_state_names = ("target_ahead", "target_left", "offset", "progress",
+                          *COMMAND_NAMES, *DYNAMICS_NAMES)
+
+    def critic_state(self, info: dict[str, Any]) -> np.ndarray:
+        """The pure-pursuit target (the centre line 0.15 m ahead) in the robot's frame (in
+        lookaheads: where the track goes and which side of it the robot is on), the offset
+        from the centre line (in ``max_offset``s), the progress along it (in
+        ``min_progress``, clipped to +-2), the last wheel commands and the episode's
+        dynamics (``critic_state.py``)."""
+        ahead, left = robot_frame(info["pose"], info["target_xy"])
+        lookahead = FollowExpert.lookahead
+        progress = float(np.clip(float(info["progress"]) / self.min_progress, -2.0, 2.0))
+        return np.array([ahead / lookahead, left / lookahead,
+                         float(info["offset"]) / self.max_offset, progress,
+                         *commands(info, self.max_speed), *dynamics(info)], dtype=np.float32)
 
 
 @dataclass(frozen=True)

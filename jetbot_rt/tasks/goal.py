@@ -12,9 +12,20 @@ from typing import Any, ClassVar
 import numpy as np
 
 from jetbot_rt.tasks.api import Task, WorldView
+from jetbot_rt.tasks.critic_state import (
+    COMMAND_NAMES,
+    DYNAMICS_NAMES,
+    commands,
+    dynamics,
+    robot_frame,
+)
 from jetbot_rt.tasks.scene import Block, Scene
 
 GOAL = "goal"
+SPEED_SCALE = 0.3
+"""m/s; about the fastest a randomized robot drives (the critic state's speed unit)."""
+SHIFT_SCALE = 0.03
+"""m; seek's ``max_block_shift`` (the critic state's block shift unit)."""
 
 
 def start_pose(task: GoalTask, rng: np.random.Generator,
@@ -80,3 +91,20 @@ class GoalTask(Task):
 
     def terminated(self, info: dict[str, Any]) -> bool:
         return self.early_end and bool(info["is_success"] or info["failed"])
+
+    critic_state_names = ("goal_distance", "goal_bearing_sin", "goal_bearing_cos",
+                          "block_shift", "speed", *COMMAND_NAMES, *DYNAMICS_NAMES)
+
+    def critic_state(self, info: dict[str, Any]) -> np.ndarray:
+        """The goal's distance (m) and bearing in the robot's frame (sine and cosine: no
+        jump behind the robot; from where it was placed, which it leaves by less than
+        ``max_block_shift`` in a live seek episode), how far it has been pushed (in 3 cm),
+        the robot's speed (in 0.3 m/s), the last wheel commands and the episode's dynamics
+        (``critic_state.py``). What the value of a frame depends on that one frame shows
+        badly or not at all: the distance to a small block, the speed, latency."""
+        ahead, left = robot_frame(info["pose"], info["goal_xy"])
+        bearing = math.atan2(left, ahead)
+        return np.array([float(info["distance"]), math.sin(bearing), math.cos(bearing),
+                         float(info["block_shift"]) / SHIFT_SCALE,
+                         float(info["speed"]) / SPEED_SCALE,
+                         *commands(info, self.max_speed), *dynamics(info)], dtype=np.float32)

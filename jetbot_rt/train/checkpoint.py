@@ -34,7 +34,13 @@ from jetbot_rt.config.safe_file import shown
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.tasks import available
 from jetbot_rt.tasks.loader import is_code_reference
-from jetbot_rt.train.hyperparams import ModelConfig, OptionError, value_text
+from jetbot_rt.train.hyperparams import (
+    MAX_PARAMETERS,
+    CriticConfig,
+    ModelConfig,
+    OptionError,
+    value_text,
+)
 from jetbot_rt.train.model import ActorCritic
 
 CHECKPOINT_FORMAT = "jetbot_rt.ppo/1"
@@ -134,13 +140,16 @@ class Checkpoint:
     max_speed: float | None
     training: TrainingState | None
     """None for a checkpoint without an optimizer (a network only: export, ``--init``)."""
+    critic: CriticConfig | None = None
+    """The asymmetric critic of a ``--critic state`` run (its weights are ``critic.*``);
+    None: the value is the image head's."""
 
     def _refuse(self, problem: str) -> UsageError:
         return UsageError(f"checkpoint {self.path}: {problem}")
 
     def model(self) -> ActorCritic:
-        """The network with the checkpoint's weights, in eval mode."""
-        model = ActorCritic(self.model_config)
+        """The network with the checkpoint's weights (its critic's too), in eval mode."""
+        model = ActorCritic(self.model_config, self.critic)
         expected = model.state_dict()
         missing = sorted(set(expected) - set(self.weights))
         extra = sorted(str(k) for k in self.weights if k not in expected)
@@ -156,13 +165,25 @@ class Checkpoint:
         model.load_state_dict(self.weights)
         return model.eval()
 
-    def check_resumable(self, task: str, algo: str) -> TrainingState:
-        """The training state, if this checkpoint can continue a run of ``algo`` on ``task``."""
+    def check_resumable(self, task: str, algo: str,
+                        critic: CriticConfig | None = None) -> TrainingState:
+        """The training state, if this checkpoint can continue a run of ``algo`` on ``task``
+        with ``critic`` (None: the image critic; a critic of another kind or width is
+        refused, its hidden width is the checkpoint's, as the rest of its network)."""
         if self.task != task:
             raise self._refuse(f"is for task {self.task!r}, not {task!r}")
         if self.algo != algo:
             raise self._refuse(f"was written by {self.algo}, not {algo} (a new run can start "
                                "from its network: init)")
+        if (self.critic is None) != (critic is None):
+            was, now = ("state", "image") if critic is None else ("image", "state")
+            raise self._refuse(f"was trained with --critic {was}, not --critic {now}: resume "
+                               f"it with --critic {was} (a new run can start from its actor: "
+                               "--init)")
+        if self.critic is not None and critic is not None and \
+                self.critic.state_size != critic.state_size:
+            raise self._refuse(f"its critic reads {self.critic.state_size} state values, task "
+                               f"{task!r} gives {critic.state_size}")
         if self.training is None:
             raise self._refuse("holds no optimizer state to resume from (a new run can start "
                                "from its network: init)")
@@ -300,6 +321,16 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
         raise _Defect(f"model_config{exc.name.removeprefix('model')} {exc.problem}") from None
     except UsageError as exc:
         raise _Defect(f"model_config: {exc}") from None
+    critic = None
+    if state.get("critic") is not None:
+        try:
+            critic = CriticConfig.from_dict(state["critic"])
+        except OptionError as exc:
+            raise _Defect(f"{exc.name} {exc.problem}") from None
+        total = model_config.parameter_count() + critic.parameter_count()
+        if total > MAX_PARAMETERS:
+            raise _Defect(f"the network and its critic have {total:,} parameters, more than "
+                          f"{MAX_PARAMETERS:,}")
     weights = state.get("model")
     if not isinstance(weights, dict):
         raise _Defect(f"model must be a dict of weights, got {value_text(weights)}")
@@ -319,4 +350,4 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
                                  wall_s=_number(state, "wall_s", 0.0),
                                  optimizer=state["optimizer"], reward_rms=rms)
     return Checkpoint(path=shown_path, task=task, algo=algo, model_config=model_config,
-                      weights=weights, max_speed=max_speed, training=training)
+                      weights=weights, max_speed=max_speed, training=training, critic=critic)

@@ -19,6 +19,10 @@ from jetbot_rt.train.env import POLICY_IMAGE_SIZE
 from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.wrappers import REWARD_TRANSFORMS, Shaping
 
+CRITICS = ("image", "state")
+"""``--critic``: what PPO's value function reads (``CriticConfig``, docs/TRAINING.md)."""
+MAX_CRITIC_STATE = 4096
+"""Values a task's privileged critic state may have (the built-ins have 13-20)."""
 EXPERT_SEES = ("frame", "now")
 """``--expert-sees``: the state DAgger's expert labels (``dagger_sampler.FrameState``)."""
 
@@ -154,6 +158,50 @@ class ModelConfig:
         convolutions = (3 * k * k + 1) * c1 + (9 * c1 + 1) * c2 + (9 * c2 + 1) * c3
         heads = (hidden + 1) * 2 + (hidden + 1) * 1 + 2  # mu, value, log_std
         return convolutions + (c3 * side * side + 1) * hidden + heads
+
+
+@dataclass(frozen=True)
+class CriticConfig:
+    """An asymmetric critic (PPO's ``--critic state``; Pinto et al. 2018, "Asymmetric Actor
+    Critic for Image-Based Robot Learning"): the value function is an MLP on the task's
+    privileged simulator state (``Task.critic_state``), ``state_size`` values -> ``hidden``
+    -> ``hidden`` -> 1, tanh between (cleanrl's critic for state observations). It reads the
+    state alone, not the image features beside it: the state holds what the value depends
+    on, and the value loss then never reaches the actor's encoder, which learns from the
+    policy loss alone -- the actor is exactly the network the robot runs, trained for
+    nothing else. The critic is a training-time part: the exported ONNX is the actor."""
+
+    state_size: int
+    """Width of the privileged state (``len(Task.critic_state_names)``)."""
+    hidden: int = 64
+    """Width of the critic's two hidden layers."""
+
+    def __post_init__(self) -> None:
+        _check_int("critic.state_size", self.state_size)
+        _check_int("critic.hidden", self.hidden)
+        if not 1 <= self.state_size <= MAX_CRITIC_STATE:
+            raise OptionError("critic.state_size", f"must be 1 .. {MAX_CRITIC_STATE}, got "
+                                                   f"{self.state_size}")
+        if not 1 <= self.hidden <= MAX_HIDDEN:
+            raise OptionError("critic.hidden", f"must be 1 .. {MAX_HIDDEN}, got {self.hidden}")
+        if self.parameter_count() > MAX_PARAMETERS:
+            raise OptionError("critic", f"has {self.parameter_count():,} parameters, more than "
+                                        f"the {MAX_PARAMETERS:,} a checkpoint may hold")
+
+    def parameter_count(self) -> int:
+        return (self.state_size + 1) * self.hidden + (self.hidden + 1) * self.hidden + \
+            self.hidden + 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Any) -> CriticConfig:
+        """A config as ``to_dict`` wrote it; ``OptionError`` names the first bad key."""
+        if not isinstance(data, dict) or set(data) != {"state_size", "hidden"}:
+            raise OptionError("critic", f"must be a dict of state_size and hidden, got "
+                                        f"{value_text(data)}")
+        return cls(data["state_size"], data["hidden"])
 
 
 def value_text(value: Any) -> str:
@@ -319,6 +367,15 @@ class PPOArgs(CurriculumOptions):
     """Learner threads during the update, when the env workers are idle: the cores this
     process may run on (its CPU affinity), not all the machine's; more threads than cores
     made PPO 10x slower (2 cores of 16 under taskset: 43 env steps/s instead of ~450)."""
+    critic: str = "image"
+    """What the value function reads: "image", the camera image (a value head on the
+    actor's features, one network); "state", the simulator's privileged state
+    (``Task.critic_state``: for seek the goal's distance and bearing, the speed, the
+    latencies, ...) through an MLP of its own, the asymmetric actor-critic of Pinto et al.
+    2018. The actor and the exported ONNX are the same either way: one image in, mu out.
+    For tasks with a critic state (forward, seek, follow, avoid)."""
+    critic_hidden: int = 64
+    """With critic "state": the width of the critic MLP's two hidden layers."""
     progress: bool = True
     """Show a progress bar."""
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -347,6 +404,33 @@ class PPOArgs(CurriculumOptions):
             raise OptionError("reward_transform", f"must be one of "
                                                   f"{', '.join(REWARD_TRANSFORMS)}, got "
                                                   f"{value_text(self.reward_transform)}")
+        critic = critic_config(self)
+        if critic is not None and \
+                self.model.parameter_count() + critic.parameter_count() > MAX_PARAMETERS:
+            raise OptionError("critic_hidden", f"makes the network and its critic larger than "
+                                               f"the {MAX_PARAMETERS:,} parameters a "
+                                               "checkpoint may hold")
+
+
+def critic_config(options: PPOArgs) -> CriticConfig | None:
+    """The critic ``options`` ask for: None for ``critic`` "image" (the value head on the
+    image features), else a ``CriticConfig`` as wide as the task's critic state.
+    ``OptionError`` for an unknown ``critic``; ``UsageError`` for "state" on a task without
+    a critic state (``Task.critic_state_names`` empty)."""
+    if options.critic not in CRITICS:
+        raise OptionError("critic", f"must be one of {', '.join(CRITICS)}, got "
+                                    f"{value_text(options.critic)}")
+    if options.critic == "image":
+        return None
+    task = load_task(options.task)
+    if not task.critic_state_names:
+        raise UsageError(f"--critic state: task {options.task!r} has no privileged critic "
+                         "state (its Task.critic_state_names is empty; docs/TASKS.md says how "
+                         "to give it one)")
+    if not 1 <= options.critic_hidden <= MAX_HIDDEN:
+        raise OptionError("critic_hidden", f"must be 1 .. {MAX_HIDDEN}, got "
+                                           f"{options.critic_hidden}")
+    return CriticConfig(len(task.critic_state_names), options.critic_hidden)
 
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {name: load().training for name, load in

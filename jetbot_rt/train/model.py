@@ -8,6 +8,12 @@ network of a larger input (``image_size`` 224, ``pool`` 4) area-pools it to 56x5
 the same convolutions serve both. About 0.2 M parameters (an rl_games network for this input
 has ~19 M); 82 k with the 6x6 stride-4 first layer that forward's PPO default uses
 (``first_kernel``, ``first_stride``).
+
+With a ``CriticConfig`` (PPO's ``--critic state``) the network also has ``critic``, an MLP on
+the task's privileged state: the asymmetric actor-critic. ``value`` and ``distribution`` then
+take that state and the value comes from it; ``forward`` -- what is exported -- stays the
+image-only actor (its ``value`` output is the image head's, which such a run never trains,
+as a DAgger policy's).
 """
 
 from __future__ import annotations
@@ -17,9 +23,11 @@ import math
 import torch
 from torch import nn
 
-from jetbot_rt.train.hyperparams import ModelConfig
+from jetbot_rt.train.hyperparams import CriticConfig, ModelConfig
 
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+CRITIC = "critic"
+"""The asymmetric critic's module (its weights are named ``critic.*``)."""
 
 
 def normal_log_prob(x: torch.Tensor, mu: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
@@ -40,9 +48,12 @@ class ActorCritic(nn.Module):
     PPO's batch of 2 frames per step the checks cost about as much as the network itself
     (benchmarks/bench_train.py turns them on for its baseline)."""
 
-    def __init__(self, config: ModelConfig = ModelConfig()) -> None:  # noqa: B008 (frozen)
+    def __init__(self, config: ModelConfig = ModelConfig(),  # noqa: B008 (frozen)
+                 critic: CriticConfig | None = None) -> None:
         super().__init__()
         self.config = config
+        self.critic_config = critic
+        """None: the value is the image head's (one network); else the asymmetric critic's."""
         c1, c2, c3 = config.channels
         kernel, stride, pad = config.first_kernel, config.first_stride, config.first_padding()
         side = config.feature_side()
@@ -62,6 +73,15 @@ class ActorCritic(nn.Module):
         nn.init.constant_(self.mu_head.bias, config.init_mu)
         self.value_head = _layer_init(nn.Linear(config.hidden, 1), 1.0)
         self.log_std = nn.Parameter(torch.full((2,), float(config.init_log_std)))
+        self.critic: nn.Module | None = None
+        if critic is not None:  # built last: the actor's weights draw as without it
+            self.critic = nn.Sequential(
+                _layer_init(nn.Linear(critic.state_size, critic.hidden), math.sqrt(2)),
+                nn.Tanh(),
+                _layer_init(nn.Linear(critic.hidden, critic.hidden), math.sqrt(2)),
+                nn.Tanh(),
+                _layer_init(nn.Linear(critic.hidden, 1), 1.0),
+            )
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``obs``: ``[N, S, S, 3]`` RGB, 0..255 (any float or uint8 dtype), S = image_size.
@@ -85,14 +105,40 @@ class ActorCritic(nn.Module):
         mu = self.mu_head(features)
         return mu, self.log_std.expand_as(mu), self.value_head(features)
 
-    def value(self, x: torch.Tensor) -> torch.Tensor:
-        """State value of preprocessed observations, ``[N]``."""
+    def critic_value(self, state: torch.Tensor | None) -> torch.Tensor:
+        """The asymmetric critic's value of privileged states ``[N, state_size]``, ``[N]``."""
+        if self.critic is None or state is None:
+            raise ValueError("critic_value needs the asymmetric critic and the state it reads")
+        return self.critic(state).squeeze(-1)
+
+    def value(self, x: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:
+        """State value of preprocessed observations, ``[N]``; with the asymmetric critic, of
+        their privileged ``state`` (``x`` unused)."""
+        if self.critic is not None:
+            return self.critic_value(state)
         return self.heads(x)[2].squeeze(-1)
 
-    def distribution(self, x: torch.Tensor) -> tuple[torch.distributions.Normal, torch.Tensor]:
-        """Action distribution and value of preprocessed observations."""
+    def distribution(self, x: torch.Tensor, state: torch.Tensor | None = None
+                     ) -> tuple[torch.distributions.Normal, torch.Tensor]:
+        """Action distribution and value of preprocessed observations (with the asymmetric
+        critic, the value of their privileged ``state``)."""
         mu, log_std, value = self.heads(x)
         normal = torch.distributions.Normal(mu, log_std.exp(), validate_args=self.validate_args)
+        if self.critic is not None:
+            return normal, self.critic_value(state)
         return normal, value.squeeze(-1)
+
+    def actor_state_dict(self) -> dict[str, torch.Tensor]:
+        """The weights of the image network alone (``forward``'s, what is exported and what
+        the env workers' copies run): ``state_dict`` without the critic's."""
+        return {name: weight for name, weight in self.state_dict().items()
+                if not name.startswith(CRITIC + ".")}
+
+    def critic_parameters(self) -> list[nn.Parameter]:
+        return [] if self.critic is None else list(self.critic.parameters())
+
+    def actor_parameters(self) -> list[nn.Parameter]:
+        critic = {id(p) for p in self.critic_parameters()}
+        return [p for p in self.parameters() if id(p) not in critic]
 
 

@@ -4,6 +4,11 @@
 update the network on it (``ppo_update``), log a metrics row, and checkpoint now and then into
 the run directory (``run_dir.py``). The reward the learner sees is built by wrappers
 (``wrappers.py``): shaping per env, normalisation and clipping over the vector env.
+
+``--critic state`` makes it an asymmetric actor-critic (Pinto et al. 2018): the value is an
+MLP of the task's privileged simulator state (``hyperparams.CriticConfig``), read at training
+time only; the actor, and so the exported ONNX, is the same image network as ever. Nothing
+else changes: the same rollouts, GAE, clipped surrogate and value loss.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from jetbot_rt.tasks import load_task
 from jetbot_rt.train.curriculum import Schedule, curve, metric_fields, send
 from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
-from jetbot_rt.train.hyperparams import PPOArgs
+from jetbot_rt.train.hyperparams import PPOArgs, critic_config
 from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.ray_workers import WorkersLost
 from jetbot_rt.train.rollout import Rollout, RolloutSource, make_rollout_source
@@ -70,8 +75,15 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
                advantages: torch.Tensor, returns: torch.Tensor, options: PPOArgs,
                rng: np.random.Generator) -> UpdateStats:
     """``update_epochs`` passes over the rollout in ``num_minibatches`` shuffled minibatches:
-    the clipped surrogate, the value loss and the entropy bonus, gradients clipped."""
+    the clipped surrogate, the value loss and the entropy bonus, gradients clipped. With the
+    asymmetric critic the value is the critic's of ``rollout.states``, and the actor's and
+    the critic's gradients are clipped each to their own norm (two networks: the critic's
+    gradient does not shrink the actor's step)."""
     obs = rollout.obs.reshape((-1, *rollout.obs.shape[2:]))
+    states = None if rollout.states is None else rollout.states.reshape(
+        -1, rollout.states.shape[-1])
+    clipped = ([model.actor_parameters(), model.critic_parameters()] if states is not None
+               else [list(model.parameters())])
     actions, old_logprobs = rollout.actions.reshape(-1, 2), rollout.logprobs.reshape(-1)
     advantages, returns = advantages.reshape(-1), returns.reshape(-1)
     batch_size = len(old_logprobs)
@@ -82,7 +94,7 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
         order = rng.permutation(batch_size)
         for begin in range(0, batch_size, minibatch_size):
             mb = torch.from_numpy(order[begin:begin + minibatch_size]).to(obs.device)
-            dist, new_value = model.distribution(obs[mb])
+            dist, new_value = model.distribution(obs[mb], None if states is None else states[mb])
             new_logprob = dist.log_prob(actions[mb]).sum(-1)
             entropy = dist.entropy().sum(-1).mean()
             log_ratio = new_logprob - old_logprobs[mb]
@@ -98,7 +110,8 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
             loss = policy_loss - options.ent_coef * entropy + options.vf_coef * value_loss
             optimizer.zero_grad()
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), options.max_grad_norm)
+            for parameters in clipped:
+                torch.nn.utils.clip_grad_norm_(parameters, options.max_grad_norm)
             optimizer.step()
     return UpdateStats(policy_loss.item(), value_loss.item(), entropy.item(), approx_kl.item(),
                        float(np.mean(clipfracs)))
@@ -172,7 +185,7 @@ class _Run:
         saved = self.run.prepare(options.resume)
         torch.manual_seed(options.seed)
         torch.set_num_threads(options.torch_threads)
-        model, resumed = starting_model(options, saved, "ppo")
+        model, resumed = starting_model(options, saved, "ppo", critic_config(options))
         self.model = model.train().to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=options.learning_rate,
                                           eps=1e-5)
@@ -205,7 +218,7 @@ class _Run:
         rollout = self.source.collect(model, update)
         self.episodes.add(rollout.episodes)
         with torch.no_grad():
-            next_value = model.value(rollout.next_obs)
+            next_value = model.value(rollout.next_obs, rollout.next_state)
         advantages, returns = gae(rollout.rewards, rollout.values, rollout.dones, next_value,
                                   rollout.next_done, options.gamma, options.gae_lambda)
         torch.set_num_threads(options.update_threads)

@@ -15,6 +15,11 @@ Both give the same PPO: the weights are the learner's at the start of the rollou
 that ends is reset in the same step (SAME_STEP), the reward is normalised by the running std
 of the discounted return and clipped in step order, and a time-limit truncation is not an end:
 its step's reward carries ``gamma`` times the value of the final observation.
+
+With the asymmetric critic (``model.critic``, PPO's ``--critic state``) the envs put the
+task's privileged state in their info (``wrappers.CriticState``) and the rollout keeps it
+beside each frame (``Rollout.states``): every value -- of a step, of a truncated episode's
+final observation, of the next rollout's first -- is the critic's of that state.
 """
 
 from __future__ import annotations
@@ -30,8 +35,8 @@ from jetbot_rt.train.device import to_cpu
 from jetbot_rt.train.hyperparams import PPOArgs
 from jetbot_rt.train.model import ActorCritic, normal_log_prob
 from jetbot_rt.train.sampler import PolicySampler, normalize_segment, stack_segments
-from jetbot_rt.train.vec_env import EnvSpec, close_vector_env, make_vector_env
-from jetbot_rt.train.wrappers import normalize_rewards
+from jetbot_rt.train.vec_env import EPISODE_INFO, EnvSpec, close_vector_env, make_vector_env
+from jetbot_rt.train.wrappers import CRITIC_STATE, normalize_rewards
 
 
 @dataclass
@@ -52,6 +57,11 @@ class Rollout:
     next_done: torch.Tensor
     episodes: list[tuple[float, float, float]]
     """(return, final distance, success) of each episode that ended, in step, env order."""
+    states: torch.Tensor | None = None
+    """With the asymmetric critic: the privileged state of each step's frame
+    (``[num_steps, num_envs, state_size]``), which the critic reads; else None."""
+    next_state: torch.Tensor | None = None
+    """With the asymmetric critic: the state of ``next_obs``."""
 
     @property
     def steps(self) -> int:
@@ -62,7 +72,8 @@ class RolloutSource:
     """A vector env, its reward normaliser and the rollout buffers (reused every update)."""
 
     def __init__(self, envs: VectorEnv, normalizer: Any, options: PPOArgs,
-                 device: torch.device, obs_shape: tuple[int, ...]) -> None:
+                 device: torch.device, obs_shape: tuple[int, ...], state_size: int = 0) -> None:
+        """``state_size``: the asymmetric critic's input width (0: no critic state)."""
         self.envs, self.normalizer, self.options, self.device = envs, normalizer, options, device
         shape = (options.num_steps, options.num_envs)
         self.obs = torch.zeros((*shape, *obs_shape), device=device)
@@ -71,6 +82,11 @@ class RolloutSource:
             torch.zeros(shape, device=device) for _ in range(4))
         self.next_obs = torch.zeros((options.num_envs, *obs_shape), device=device)
         self.next_done = torch.zeros(options.num_envs, device=device)
+        self.states: torch.Tensor | None = None
+        self.next_state: torch.Tensor | None = None
+        if state_size:
+            self.states = torch.zeros((*shape, state_size), device=device)
+            self.next_state = torch.zeros((options.num_envs, state_size), device=device)
 
     @property
     def restarts(self) -> int:
@@ -78,9 +94,14 @@ class RolloutSource:
         return getattr(self.envs.unwrapped, "restarts", 0)
 
     def reset(self, model: ActorCritic, seeds: list[int]) -> None:
-        frames, _ = self.envs.reset(seed=seeds)
+        frames, infos = self.envs.reset(seed=seeds)
         self.next_obs = model.preprocess(torch.from_numpy(frames).to(self.device))
         self.next_done = torch.zeros(self.options.num_envs, device=self.device)
+        if self.states is not None:
+            self.next_state = self._states(infos[CRITIC_STATE])
+
+    def _states(self, states: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(states, dtype=np.float32), device=self.device)
 
     def collect(self, model: ActorCritic, update: int) -> Rollout:
         raise NotImplementedError
@@ -90,7 +111,8 @@ class RolloutSource:
 
     def _rollout(self, episodes: list[tuple[float, float, float]]) -> Rollout:
         return Rollout(self.obs, self.actions, self.logprobs, self.rewards, self.dones,
-                       self.values, self.next_obs, self.next_done, episodes)
+                       self.values, self.next_obs, self.next_done, episodes, self.states,
+                       self.next_state)
 
 
 class LearnerRollouts(RolloutSource):
@@ -99,8 +121,12 @@ class LearnerRollouts(RolloutSource):
         for step in range(self.options.num_steps):
             self.obs[step] = self.next_obs
             self.dones[step] = self.next_done
+            if self.states is not None:
+                self.states[step] = self.next_state
             with torch.no_grad():
                 mu, log_std, value = model.heads(self.next_obs)
+                if self.states is not None:
+                    value = model.critic_value(self.next_state)[:, None]
                 std = log_std.exp()
                 action = torch.normal(mu, std)  # what Normal(mu, std).sample() does
                 self.logprobs[step] = normal_log_prob(action, mu, std).sum(-1)
@@ -117,6 +143,8 @@ class LearnerRollouts(RolloutSource):
                                  float(final_info["is_success"][i])))
             self.next_obs = model.preprocess(torch.from_numpy(frames).to(self.device))
             self.next_done = torch.as_tensor(done, dtype=torch.float32, device=self.device)
+            if self.states is not None:  # after a reset (SAME_STEP): the reset's state
+                self.next_state = self._states(infos[CRITIC_STATE])
         return self._rollout(episodes)
 
     def _bootstrapped(self, model: ActorCritic, reward: np.ndarray, terminated: np.ndarray,
@@ -125,7 +153,12 @@ class LearnerRollouts(RolloutSource):
         observation where an episode was truncated by the time limit."""
         reward = np.asarray(reward, dtype=np.float64).copy()
         idx = np.nonzero(truncated & ~terminated)[0]
-        if idx.size and "final_obs" in infos:
+        if idx.size and self.states is not None:
+            final_states = self._states(infos["final_info"][CRITIC_STATE][idx])
+            with torch.no_grad():
+                final_value = model.critic_value(final_states)
+            reward[idx] += self.options.gamma * final_value.cpu().numpy()
+        elif idx.size and "final_obs" in infos:
             final = torch.from_numpy(np.stack(infos["final_obs"][idx])).to(self.device)
             with torch.no_grad():
                 final_value = model.value(model.preprocess(final))
@@ -139,7 +172,7 @@ class WorkerRollouts(RolloutSource):
         # numpy, not tensors: torch pickles a tensor as a shared-memory file descriptor
         # handed over by a resource_sharer thread, which prints a traceback when a worker
         # dies on Ctrl-C mid-handover.
-        weights = {name: w.numpy() for name, w in to_cpu(model.state_dict()).items()}
+        weights = {name: w.numpy() for name, w in to_cpu(model.actor_state_dict()).items()}
         segment = stack_segments(self.envs.unwrapped.call(
             "collect", weights, options.num_steps, (options.seed, update)))
         frames = torch.from_numpy(segment["obs"]).to(device)
@@ -152,6 +185,8 @@ class WorkerRollouts(RolloutSource):
         self.dones[1:] = torch.from_numpy(done[:-1]).to(device)
         reward = normalize_segment(self.normalizer, options.reward_clip, segment["rewards"],
                                    segment["terminated"], segment["truncated"])
+        if self.states is not None:  # the critic's values of the states the workers saw
+            self._critic_values(model, segment)
         reward += options.gamma * segment["final_values"]  # 0 where not truncated
         self.rewards[:] = torch.as_tensor(reward, dtype=torch.float32, device=device)
         episodes = [(episode_return, distance, success)
@@ -159,6 +194,20 @@ class WorkerRollouts(RolloutSource):
         self.next_obs = model.preprocess(torch.from_numpy(segment["next_obs"]).to(device))
         self.next_done = torch.as_tensor(done[-1], dtype=torch.float32, device=device)
         return self._rollout(episodes)
+
+    def _critic_values(self, model: ActorCritic, segment: dict[str, Any]) -> None:
+        """Fill ``states``, ``values`` and ``next_state`` from the segment's states and set its
+        ``final_values`` to the critic's (the workers ran the actor alone)."""
+        assert self.states is not None
+        self.states[:] = self._states(segment["states"])
+        self.next_state = self._states(segment["next_state"])
+        bootstrapped = segment["truncated"] & ~segment["terminated"]
+        with torch.no_grad():
+            self.values[:] = model.critic_value(self.states.flatten(0, 1)).reshape(
+                self.values.shape)
+            final = model.critic_value(self._states(segment["final_states"]).flatten(0, 1))
+        segment["final_values"] = np.where(bootstrapped, final.cpu().numpy().reshape(
+            bootstrapped.shape), 0.0)
 
 
 def samples_in_workers(options: PPOArgs) -> bool:
@@ -170,9 +219,11 @@ def make_rollout_source(options: PPOArgs, model: ActorCritic,
                         device: torch.device) -> RolloutSource:
     """The source ``options`` ask for, with its vector env started."""
     sampling = samples_in_workers(options)
+    critic = model.critic_config
     spec = EnvSpec(options.task, options.config, options.shaping, model.config.image_size,
+                   keep=EPISODE_INFO if critic is None else (*EPISODE_INFO, CRITIC_STATE),
                    sampler=PolicySampler if sampling else None,
-                   model=model.config if sampling else None)
+                   model=model.config if sampling else None, critic_state=critic is not None)
     envs, normalizer = normalize_rewards(
         make_vector_env(spec, options.num_envs, options.workers, ray=options.ray,
                         ray_max_restarts=options.ray_max_restarts),
@@ -181,4 +232,5 @@ def make_rollout_source(options: PPOArgs, model: ActorCritic,
         frame = torch.zeros((1, *envs.single_observation_space.shape))
         obs_shape = tuple(model.preprocess(frame).shape[1:])
     source = WorkerRollouts if sampling else LearnerRollouts
-    return source(envs, normalizer, options, device, obs_shape)
+    return source(envs, normalizer, options, device, obs_shape,
+                  0 if critic is None else critic.state_size)

@@ -57,6 +57,7 @@ from jetbot_rt.train.checkpoint import (
 )
 from jetbot_rt.train.device import to_cpu
 from jetbot_rt.train.export import export_model
+from jetbot_rt.train.hyperparams import CriticConfig
 from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.out_dir import inside, writable_directory
 
@@ -149,18 +150,34 @@ def _cell(name: str, cell: str) -> Value:
     return value
 
 
-def starting_model(options: Any, saved: Checkpoint | None, algo: str
+def starting_model(options: Any, saved: Checkpoint | None, algo: str,
+                   critic: CriticConfig | None = None
                    ) -> tuple[ActorCritic, TrainingState | None]:
-    """The network a run of ``algo`` starts from, and the training state it resumes (None for
-    a new run): fresh (``options.model``), then ``options.init``'s, then ``saved``'s. Each is
-    built in turn, as they draw from torch's generator in this order."""
-    model = ActorCritic(options.model)
+    """The network a run of ``algo`` with ``critic`` (PPO's asymmetric one, else None) starts
+    from, and the training state it resumes (None for a new run): fresh (``options.model``),
+    then ``options.init``'s, then ``saved``'s. Each is built in turn, as they draw from
+    torch's generator in this order. ``init`` gives its network's actor always and its
+    critic only where it is the one asked for (else a fresh critic, or none); ``saved`` must
+    have the critic asked for (``Checkpoint.check_resumable``)."""
+    model = ActorCritic(options.model, critic)
     if options.init:
-        model = load_checkpoint(options.init).model()
+        model = _with_critic(load_checkpoint(options.init).model(), critic)
     if saved is None:
         return model, None
-    resumed = saved.check_resumable(options.task, algo)
+    resumed = saved.check_resumable(options.task, algo, critic)
     return saved.model(), resumed
+
+
+def _with_critic(model: ActorCritic, critic: CriticConfig | None) -> ActorCritic:
+    """``model``'s actor with ``critic``: ``model`` itself where its critic is of that kind
+    and width, else a network with a fresh critic (or none) and ``model``'s actor weights."""
+    have = model.critic_config
+    if (have is None and critic is None) or (have is not None and critic is not None and
+                                             have.state_size == critic.state_size):
+        return model
+    fresh = ActorCritic(model.config, critic)
+    fresh.load_state_dict(model.actor_state_dict(), strict=False)
+    return fresh.eval()
 
 
 @dataclass
@@ -323,6 +340,8 @@ class RunDirectory:
         }
         if reward_rms is not None:
             state["reward_rms"] = reward_rms
+        if model.critic_config is not None:
+            state["critic"] = model.critic_config.to_dict()
         save_checkpoint(self.inside(CHECKPOINT_NAME), state)
 
     def export_policy(self, model: ActorCritic, task: str, max_speed: float,

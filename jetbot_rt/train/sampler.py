@@ -14,6 +14,11 @@ vector env does), and a time-limit truncation carries the value of its final obs
 bootstrapping. The rewards go back unnormalised; ``normalize_segment`` replays the vector
 env's ``NormalizeReward`` + ``ClipReward`` over them in step order, on the same state.
 The sampling noise comes from a numpy generator seeded by (run seed, update, env index).
+
+With PPO's asymmetric critic (``--critic state``) the env's info carries the privileged state
+(``wrappers.CriticState``): the worker sends each step's state back beside its frame (and a
+truncated episode's final state), and the learner computes the values from them with its
+critic; the worker's copy is the actor alone.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import torch
 
 from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.model import LOG_SQRT_2PI, ActorCritic
+from jetbot_rt.train.wrappers import CRITIC_STATE
 
 
 class PolicySampler(gym.Wrapper):
@@ -49,6 +55,8 @@ class PolicySampler(gym.Wrapper):
         self.model_config = model
         self.index = index
         self._obs: np.ndarray | None = None
+        self._state: np.ndarray | None = None
+        """The privileged state of ``_obs`` (``info["critic_state"]``), when the env has one."""
         # Built with the env, as the worker starts (~0.3 s of CPU), not in the first rollout.
         if multiprocessing.parent_process() is not None:
             torch.set_num_threads(1)  # one core per worker
@@ -66,6 +74,7 @@ class PolicySampler(gym.Wrapper):
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self._obs = obs
+        self._state = info.get(CRITIC_STATE)
         return obs, info
 
     def _policy(self, weights: dict[str, np.ndarray]) -> Callable[[np.ndarray], list]:
@@ -86,7 +95,10 @@ class PolicySampler(gym.Wrapper):
         normalisation), ``terminated``, ``truncated``, ``final_values`` (value of the final
         frame where an episode was truncated, else 0) -- plus ``next_obs`` (the frame the
         next rollout starts from) and ``episodes``: (step, return, distance, success) of each
-        episode that ended."""
+        episode that ended. When the env's info has the privileged critic state, also
+        ``states`` (of each step's frame), ``final_states`` (of the final frame where an
+        episode was truncated, else 0) and ``next_state``; ``values`` and ``final_values``
+        are then the image head's or 0 (the learner's critic replaces them)."""
         if self._obs is None:
             raise RuntimeError("collect before reset")
         policy = self._policy(weights)
@@ -98,8 +110,14 @@ class PolicySampler(gym.Wrapper):
         rewards = np.empty(num_steps, dtype=np.float64)
         terminated, truncated = (np.zeros(num_steps, dtype=np.bool_) for _ in range(2))
         episodes: list[tuple[int, float, float, float]] = []
+        state = self._state
+        if state is not None:
+            states = np.empty((num_steps, *state.shape), dtype=np.float32)
+            final_states = np.zeros_like(states)
         for t in range(num_steps):
             obs[t] = self._obs
+            if state is not None:
+                states[t] = state
             mu, log_std, value = policy(obs[t:t + 1])
             std = np.exp(log_std[0])
             actions[t] = mu[0] + std * rng.standard_normal(2, dtype=np.float32)
@@ -109,25 +127,34 @@ class PolicySampler(gym.Wrapper):
             next_obs, rewards[t], terminated[t], truncated[t], info = self.env.step(actions[t])
             if terminated[t] or truncated[t]:
                 if truncated[t] and not terminated[t]:
-                    final_values[t] = policy(next_obs[None])[2][0, 0]
+                    if state is not None:
+                        final_states[t] = info[CRITIC_STATE]
+                    else:
+                        final_values[t] = policy(next_obs[None])[2][0, 0]
                 episodes.append((t, float(info["episode"]["r"]),
                                  float(info.get("distance", np.nan)),  # a task may have none
                                  float(info["is_success"])))
-                next_obs, _ = self.env.reset()
+                next_obs, info = self.env.reset()
             self._obs = next_obs
-        return {"obs": obs, "actions": actions, "logprobs": logprobs, "values": values,
-                "rewards": rewards, "terminated": terminated, "truncated": truncated,
-                "final_values": final_values, "next_obs": np.array(self._obs),
-                "episodes": episodes}
+            if state is not None:
+                state = self._state = info[CRITIC_STATE]
+        segment = {"obs": obs, "actions": actions, "logprobs": logprobs, "values": values,
+                   "rewards": rewards, "terminated": terminated, "truncated": truncated,
+                   "final_values": final_values, "next_obs": np.array(self._obs),
+                   "episodes": episodes}
+        if state is not None:
+            segment.update(states=states, final_states=final_states, next_state=np.array(state))
+        return segment
 
 
 def stack_segments(segments: tuple[dict[str, Any], ...]) -> dict[str, Any]:
-    """The envs' segments as ``[num_steps, num_envs, ...]`` arrays (``next_obs``:
-    ``[num_envs, ...]``); ``episodes`` as (step, env, return, distance, success) in the
-    order a vector env would have reported them."""
-    keys = [k for k in segments[0] if k not in ("next_obs", "episodes")]
+    """The envs' segments as ``[num_steps, num_envs, ...]`` arrays (``next_obs`` and
+    ``next_state``: ``[num_envs, ...]``); ``episodes`` as (step, env, return, distance,
+    success) in the order a vector env would have reported them."""
+    per_env = [k for k in ("next_obs", "next_state") if k in segments[0]]
+    keys = [k for k in segments[0] if k not in (*per_env, "episodes")]
     stacked = {k: np.stack([s[k] for s in segments], axis=1) for k in keys}
-    stacked["next_obs"] = np.stack([s["next_obs"] for s in segments])
+    stacked.update({k: np.stack([s[k] for s in segments]) for k in per_env})
     stacked["episodes"] = sorted((t, i, *rest) for i, s in enumerate(segments)
                                  for t, *rest in s["episodes"])
     return stacked

@@ -67,6 +67,9 @@ class EnvSpec:
     """A wrapper class ``(env, model, index)`` that runs the policy in the worker."""
     model: ModelConfig | None = None
     """The network the sampler runs."""
+    critic_state: bool = False
+    """Put the task's privileged state in each info (``wrappers.CriticState``; keep
+    ``"critic_state"`` too): PPO's asymmetric critic reads it."""
 
 
 def worker_env(spec: EnvSpec, index: int) -> gym.Env:
@@ -75,8 +78,8 @@ def worker_env(spec: EnvSpec, index: int) -> gym.Env:
     if multiprocessing.parent_process() is not None:  # AsyncVectorEnv also calls it here
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     size = (spec.image_size, spec.image_size)
-    env = KeepInfo(make_train_env(spec.task, spec.config, spec.shaping, image_size=size),
-                   spec.keep)
+    env = KeepInfo(make_train_env(spec.task, spec.config, spec.shaping, image_size=size,
+                                  critic_state=spec.critic_state), spec.keep)
     return env if spec.sampler is None else spec.sampler(env, spec.model, index)
 
 

@@ -102,6 +102,48 @@ class KeepInfo(gym.Wrapper):
         return obs, reward, terminated, truncated, self._kept(info)
 
 
+CRITIC_STATE = "critic_state"
+"""The ``info`` key of the privileged state an asymmetric critic reads (``CriticState``)."""
+
+
+class CriticState(gym.Wrapper):
+    """Adds ``info["critic_state"]``: the task's privileged state (``Task.critic_state``) for
+    PPO's asymmetric critic (``--critic state``), at the reset and after every step, of the
+    state the returned frame shows. The task gets the env's ``info`` plus ``sim_params``
+    (this episode's ``[sim]`` knobs; the env reports them at the reset only). A trainer's
+    wrapper, as the shaping: the registered env and ``eval`` never compute it, the policy
+    never sees it. The vector envs carry it to the learner like any other info key
+    (``KeepInfo`` keeps it), a finished episode's in ``final_info``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        task = env.unwrapped.task
+        self.size = len(task.critic_state_names)
+        if not self.size:
+            raise UsageError(f"task {task.name!r} has no privileged critic state "
+                             "(Task.critic_state_names is empty)")
+
+    def _with_state(self, info: dict[str, Any]) -> dict[str, Any]:
+        env = self.env.unwrapped
+        state = env.task.critic_state({**info, "sim_params": env.sim_params})
+        vector = None if state is None else np.asarray(state, dtype=np.float32)
+        if vector is None or vector.shape != (self.size,) or not np.isfinite(vector).all():
+            got = "None" if vector is None else f"shape {list(vector.shape)}" + (
+                "" if vector.shape != (self.size,) else " with non-finite values")
+            raise UsageError(f"task {env.task.name!r}: critic_state() must return {self.size} "
+                             f"finite values (one per critic_state_names), got {got}")
+        info[CRITIC_STATE] = vector
+        return info
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        return obs, self._with_state(info)
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated, truncated, self._with_state(info)
+
+
 @dataclass(frozen=True)
 class Shaping:
     """What ``make_train_env`` adds to the task's reward (``PPOArgs`` holds the same fields)."""
@@ -118,11 +160,14 @@ class Shaping:
                              f"(known: {', '.join(REWARD_TRANSFORMS)})")
 
 
-def make_train_env(task: str, config: Config | None, shaping: Shaping,
-                   **env_kwargs: Any) -> gym.Env:
-    """The task's env with the trainer's reward; a module-level function, so it pickles
-    for ``AsyncVectorEnv`` (one PyBullet client per worker)."""
+def make_train_env(task: str, config: Config | None, shaping: Shaping, *,
+                   critic_state: bool = False, **env_kwargs: Any) -> gym.Env:
+    """The task's env with the trainer's reward (and with ``critic_state``, the privileged
+    state in its info: ``CriticState``); a module-level function, so it pickles for
+    ``AsyncVectorEnv`` (one PyBullet client per worker)."""
     env: gym.Env = JetbotEnv(task, config, **env_kwargs)
+    if critic_state:
+        env = CriticState(env)
     env = RecordEpisodeStatistics(env)
     if shaping.reward_transform == "symlog":
         env = TransformReward(env, symlog)
