@@ -49,27 +49,47 @@ def _flock(path: Path, how: int) -> Iterator[None]:
         os.close(fd)  # drops the lock
 
 
+_held: contextlib.ExitStack | None = None
+"""The room, held alone from an exclusive test to the next one on this worker."""
+
+
 @contextlib.contextmanager
-def _room(config: pytest.Config, exclusive: bool) -> Iterator[None]:
+def _room(config: pytest.Config, exclusive: bool, keep: bool) -> Iterator[None]:
     """A readers-writer lock over the workers of one run (flock on files in the run's base
     temp directory, shared by its workers): every test holds the room shared, an
     ``exclusive`` one alone. The turnstile makes a waiting exclusive test go next instead of
-    starving while the other worker keeps starting tests."""
+    starving while the other worker keeps starting tests. ``keep``: the next test of this
+    worker is exclusive too, and gets the room as it is, so that a run of exclusive tests
+    (test_record.py's) waits once for the other worker's test, not before each of them."""
+    global _held
     if "PYTEST_XDIST_WORKER" not in os.environ:  # one process: nothing runs beside a test
         yield
         return
-    shared = config._tmp_path_factory.getbasetemp().parent  # type: ignore[attr-defined]
-    turnstile, room = shared / "exclusive.turnstile", shared / "exclusive.room"
-    with contextlib.ExitStack() as stack:
+    stack, _held = _held, None
+    if stack is None:
+        stack = contextlib.ExitStack()
+        shared = config._tmp_path_factory.getbasetemp().parent  # type: ignore[attr-defined]
+        turnstile, room = shared / "exclusive.turnstile", shared / "exclusive.room"
         with _flock(turnstile, fcntl.LOCK_EX):
             stack.enter_context(_flock(room, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH))
+    try:
         yield
+    finally:
+        if keep:
+            _held = stack
+        else:
+            stack.close()
+
+
+def _exclusive(item: pytest.Item | None) -> bool:
+    return item is not None and item.get_closest_marker("exclusive") is not None
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     # Around set-up, call and tear-down: module and class fixtures set up for this item too.
-    with _room(item.config, item.get_closest_marker("exclusive") is not None):
+    exclusive = _exclusive(item)
+    with _room(item.config, exclusive, keep=exclusive and _exclusive(nextitem)):
         yield
 
 
