@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from plain_sim import plain_config, plain_sim_file
 from train_runner import train_here
 
 from jetbot_rt.train.expert import Expert
@@ -123,7 +124,7 @@ def test_train_algo_dagger_writes_the_run_directory(tmp_path, capsys):
     result = train_here(capsys, "train", "--task", "seek", "--algo", "dagger", "--iterations", "2",
                        "--steps-per-iteration", "20", "--train-samples", "64", "--beta", "1",
                        "--num-envs", "1", "--workers", "0", "--out", str(out), "--no-progress",
-                       "--snapshots", "2")
+                       "--snapshots", "2", "--config", str(plain_sim_file(tmp_path)))
     assert result.returncode == 0, result.stderr
     for name in ("checkpoint.pt", "policy.onnx", "metrics.csv", "learning_curve.png",
                  "policy_2.onnx"):
@@ -163,6 +164,7 @@ def test_ctrl_c_saves_exports_and_resumes_from_the_iteration(tmp_path, monkeypat
     args = dagger_args("seek", {"iterations": 2, "steps_per_iteration": 10,
                                        "train_samples": 32, "num_envs": 1, "workers": 0,
                                        "beta": 1.0, "out": str(tmp_path), "progress": False})
+    args.config = plain_config()  # the looks are not what a Ctrl-C saves
     real = dagger.regress
     calls = []
 
@@ -202,7 +204,8 @@ def test_the_expert_labels_the_state_the_frame_shows():
         def label(self, info):
             return np.array([info["sim_time"], 0.0], dtype=np.float32)
 
-    config = from_dict({"sim": {"camera_latency": 0.1}, "randomize": {"enabled": False}})
+    config = from_dict({"sim": {"camera_latency": 0.1, "lens": "pinhole"},
+                        "randomize": {"enabled": False}})
     env = JetbotEnv("seek", config)
     sampler = LabelSampler(env, ModelConfig(), 0)
     weights = {k: v.detach().numpy() for k, v in ActorCritic(ModelConfig()).state_dict().items()}
