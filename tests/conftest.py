@@ -94,14 +94,40 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
 
 
 WHOLE_FILES = {
-    "tests/test_train_ray.py": "its one-node class shares one Ray runtime, and two Ray clusters "
-                               "(a GCS, raylets, workers each) never start side by side",
     "tests/test_train_cli.py": "its smoke training run (a module fixture) is made once",
     "tests/test_record.py": "its sim recording (a module fixture) is made once",
 }
 """Files whose tests one pytest-xdist worker runs, one after another (and first: they are
 the longest units). Every other test goes to whichever worker is free. (xdist's own
 ``--dist loadgroup`` groups nothing on pytest 9.2: pytest-xdist issue #1386.)"""
+
+BOTH_CORES = {
+    "tests/test_train_ray.py": "Ray: a GCS, raylets, agents, two actors or trials; the whole "
+                               "file, so its one-node class shares one Ray runtime and two Ray "
+                               "clusters never start side by side",
+    "tests/test_calibrate.py::test_calibrate_in_the_sim_recovers_each_truth_within_tolerance":
+        "two sim drives side by side",
+    "tests/test_train_cli.py::test_ctrl_c_during_a_dagger_collection_ends_the_workers_at_once":
+        "a trainer and its two env workers",
+    "tests/test_train_sampler.py::test_training_through_worker_processes_samples_in_them":
+        "a trainer and its env workers",
+    "tests/test_ppo_asymmetric.py::test_rollouts_carry_the_state_and_bootstrap_from_the_critic"
+    "[env-workers]": "a trainer and its env workers",
+    "tests/test_children_ignore_cwd.py::test_the_trainers_worker_processes_never_import_from_"
+    "the_working_directory": "an evaluation's two workers",
+}
+"""Tests that keep both cores busy for seconds: one unit, so that they run one after another
+on one worker, beside the other worker's lighter tests (mostly a runtime waiting on its
+30 Hz), instead of two of them sharing the two cores. Side by side with test_train_cli.py's
+trainings and test_calibrate.py's drives, test_train_ray.py took 62-117 s; alone, 41 s."""
+
+
+def _unit(nodeid: str) -> str:
+    """The work unit of a test: ``BOTH_CORES``', its file's for ``WHOLE_FILES``, or its own."""
+    path = nodeid.split("::", 1)[0]
+    if any(nodeid == key or path == key for key in BOTH_CORES):
+        return "both-cores"
+    return path if path in WHOLE_FILES else nodeid
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -111,11 +137,10 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
     from xdist.scheduler import LoadScopeScheduling
 
     class Scheduling(LoadScopeScheduling):
-        """A work unit per test, or per file for ``WHOLE_FILES``; units with the most tests
-        go first (``--loadscope-reorder``, xdist's default)."""
+        """A work unit per test, or per ``_unit``; units with the most tests go first
+        (``--loadscope-reorder``, xdist's default)."""
 
         def _split_scope(self, nodeid: str) -> str:
-            path = nodeid.split("::", 1)[0]
-            return path if path in WHOLE_FILES else nodeid
+            return _unit(nodeid)
 
     return Scheduling(config, log)
