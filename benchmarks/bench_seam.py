@@ -3,7 +3,12 @@ area-averaged down to it (what the real camera's 1280x720 frame becomes after th
 scaling), over a set of seeded poses around the block; and what rendering at a multiple of
 the size and pooling costs and gains.
 
-    python benchmarks/bench_seam.py [--sizes 56 64 84] [--poses 40] [--out benchmarks/results]
+    python benchmarks/bench_seam.py [--sizes 56 64 84] [--poses 40] [--lens pinhole]
+        [--out benchmarks/results]
+
+``--lens pinhole`` (the default here) is the render these figures are about (docs/SIM.md, "The
+render size and the seam"); the simulator's own default has been the fisheye since
+2026-11-26, whose seam is measured in benchmarks/results/lens_seam/.
 
 Writes seam.json and seam.png (area-averaged reference | direct | 2x pooled, per size) to --out.
 """
@@ -48,8 +53,9 @@ def area(image: np.ndarray, size: int) -> np.ndarray:
     return cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
 
 
-def render_all(size: tuple[int, int], scenes: list) -> tuple[list[np.ndarray], float]:
-    world = JetbotWorld(SimConfig(), image_size=size)
+def render_all(size: tuple[int, int], scenes: list,
+               lens: str = "pinhole") -> tuple[list[np.ndarray], float]:
+    world = JetbotWorld(SimConfig(lens=lens), image_size=size)
     images, seconds = [], 0.0
     for robot_pose, block_xy in scenes:
         world.reset(robot_pose=robot_pose, block_xy=block_xy)
@@ -81,20 +87,22 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[56, 64, 84])
     parser.add_argument("--poses", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--lens", choices=["pinhole", "fisheye"], default="pinhole")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args()
 
     scenes = poses(args.poses, args.seed)
-    reference, reference_ms = render_all(REFERENCE, scenes)
+    reference, reference_ms = render_all(REFERENCE, scenes, args.lens)
     result: dict = {
-        "poses": args.poses, "reference": list(REFERENCE), "reference_render_ms": reference_ms,
+        "poses": args.poses, "lens": args.lens, "reference": list(REFERENCE),
+        "reference_render_ms": reference_ms,
         "loadavg_1min_at_start": round(os.getloadavg()[0], 2), "sizes": {},
     }
     panels = []
     for size in args.sizes:
         ref = [area(r, size) for r in reference]
-        direct, direct_ms = render_all((size, size), scenes)
-        double, double_ms = render_all((2 * size, 2 * size), scenes)
+        direct, direct_ms = render_all((size, size), scenes, args.lens)
+        double, double_ms = render_all((2 * size, 2 * size), scenes, args.lens)
         pooled = [area(d, size) for d in double]
         result["sizes"][str(size)] = {
             "direct_render_ms": round(direct_ms, 3),
