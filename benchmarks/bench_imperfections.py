@@ -47,6 +47,7 @@ def main() -> None:
             env.close()
     result = {
         "image_size": list(envs["ideal"].observation_space.shape[:2]),
+        "lens": from_dict({}).sim.lens,
         "steps_per_s": {k: round(v, 1) for k, v in best.items()},
         "ratio_to_ideal": {k: round(v / best["ideal"], 3) for k, v in best.items()},
         "load_avg_1min": os.getloadavg()[0],
@@ -56,8 +57,9 @@ def main() -> None:
     lines = ["| case | env steps/s | vs ideal |", "| --- | --- | --- |"]
     lines += [f"| {k} | {result['steps_per_s'][k]} | {result['ratio_to_ideal'][k]} |"
               for k in CASES]
-    lines.append(f"\nImage {result['image_size']}, best of {ROUNDS} interleaved rounds of "
-                 f"{STEPS} steps; 1-min load average at the end {result['load_avg_1min']:.1f}.")
+    lines.append(f"\nImage {result['image_size']}, {result['lens']} lens, best of {ROUNDS} "
+                 f"interleaved rounds of {STEPS} steps; 1-min load average at the end "
+                 f"{result['load_avg_1min']:.1f}.")
     (RESULTS / "imperfections.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
