@@ -35,7 +35,8 @@ WORST = {"floor_families": ["rug"], "wall_textures": ["wallpaper"], "clutter": [
          "lamps": [3, 3], "window_light": [1.0, 1.0], "shadows": 1.0, "skirting": 1.0,
          "motion_blur": [0.02, 0.02], "gain_noise": [0.03, 0.03], "vignetting": [0.5, 0.5]}
 CPU = True
-CASES = {"default": {}, "families": {"appearance": True},
+# "default" says appearance = false: the families are on by default since 2026-11-26
+CASES = {"default": {"appearance": False}, "families": {"appearance": True},
          "worst": {"appearance": True, **WORST}}
 
 
@@ -90,11 +91,12 @@ def main() -> int:
             "date": f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
             "load_average": [round(x, 1) for x in (*load_before, *os.getloadavg())],
             "resets": args.resets, "steps_per_reset": args.steps,
-            "clock": "process CPU time" if CPU else "wall"}
+            "clock": "process CPU time" if CPU else "wall",
+            "lens": from_dict({}).sim.lens}
     OUT.mkdir(exist_ok=True)
     (OUT / "appearance.json").write_text(json.dumps(stamp({**meta, "results": results}), indent=2))
     lines = [
-        "# What the appearance families cost (seek, 56x56)", "",
+        f"# What the appearance families cost (seek, 56x56, {meta['lens']} lens)", "",
         f"Command: `.venv/bin/python benchmarks/{meta['command']}`  ",
         f"Machine: {meta['machine']}; load average before / after "
         f"{meta['load_average'][:3]} / {meta['load_average'][3:]}  ",
