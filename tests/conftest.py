@@ -93,22 +93,30 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         yield
 
 
-WHOLE_FILES = {
-    "tests/test_train_cli.py": "its smoke training run (a module fixture) is made once",
-    "tests/test_record.py": "its sim recording (a module fixture) is made once",
+EXCLUSIVE = {
+    "tests/test_record.py": "its recorder's writer runs at nice 19 (see the file)",
+    "tests/test_fault_load.py::test_two_busy_cores_the_loop_keeps_its_schedule_or_stops_safely":
+        "its load is its own",
+    "tests/test_first_commands.py::test_gui_under_a_software_rendered_display_keeps_driving":
+        "Mesa renders on every core",
+    "tests/test_children_ignore_cwd.py::test_a_recorded_real_run_started_in_a_planted_directory_"
+    "runs_nothing_from_it": "its recorder's writer runs at nice 19",
 }
-"""Files whose tests one pytest-xdist worker runs, one after another (and first: they are
-the longest units). Every other test goes to whichever worker is free. (xdist's own
-``--dist loadgroup`` groups nothing on pytest 9.2: pytest-xdist issue #1386.)"""
+"""The tests marked ``exclusive``, as one unit that goes first: one worker runs them back to
+back (holding the room from one to the next) while the other, after its first test, waits.
+Spread through the run, each of them first waited for the other worker's current test (the
+smoke training, a calibration drive: up to 20 s), and so stood idle twice. A test marked
+exclusive but not listed here is still run alone, as a unit of its own; the markers decide
+who runs alone, this list only when."""
 
-BOTH_CORES = {
+HEAVY = {
     "tests/test_train_ray.py": "Ray: a GCS, raylets, agents, two actors or trials; the whole "
                                "file, so its one-node class shares one Ray runtime and two Ray "
                                "clusters never start side by side",
+    "tests/test_train_cli.py": "trainings in this process and in the console script; the whole "
+                               "file, so its smoke training run (a module fixture) is made once",
     "tests/test_calibrate.py::test_calibrate_in_the_sim_recovers_each_truth_within_tolerance":
         "two sim drives side by side",
-    "tests/test_train_cli.py::test_ctrl_c_during_a_dagger_collection_ends_the_workers_at_once":
-        "a trainer and its two env workers",
     "tests/test_train_sampler.py::test_training_through_worker_processes_samples_in_them":
         "a trainer and its env workers",
     "tests/test_ppo_asymmetric.py::test_rollouts_carry_the_state_and_bootstrap_from_the_critic"
@@ -116,31 +124,49 @@ BOTH_CORES = {
     "tests/test_children_ignore_cwd.py::test_the_trainers_worker_processes_never_import_from_"
     "the_working_directory": "an evaluation's two workers",
 }
-"""Tests that keep both cores busy for seconds: one unit, so that they run one after another
-on one worker, beside the other worker's lighter tests (mostly a runtime waiting on its
-30 Hz), instead of two of them sharing the two cores. Side by side with test_train_cli.py's
-trainings and test_calibrate.py's drives, test_train_ray.py took 62-117 s; alone, 41 s."""
+"""Tests that keep a core or both busy for many seconds, as one unit (right after the first
+ordinary test, so that the other worker takes it): they run one after another on one worker,
+beside the other worker's lighter tests (mostly a runtime waiting on its 30 Hz), instead of two
+of them sharing the two cores. Side by side with test_train_cli.py's trainings and
+test_calibrate.py's drives, test_train_ray.py took 62-117 s; alone, 41 s."""
 
 
 def _unit(nodeid: str) -> str:
-    """The work unit of a test: ``BOTH_CORES``', its file's for ``WHOLE_FILES``, or its own."""
+    """The work unit of a test: "exclusive", "heavy" or its own (xdist's own ``--dist
+    loadgroup`` groups nothing on pytest 9.2: pytest-xdist issue #1386)."""
     path = nodeid.split("::", 1)[0]
-    if any(nodeid == key or path == key for key in BOTH_CORES):
-        return "both-cores"
-    return path if path in WHOLE_FILES else nodeid
+    for name, table in (("exclusive", EXCLUSIVE), ("heavy", HEAVY)):
+        if nodeid in table or path in table:
+            return name
+    return nodeid
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
     if config.getvalue("dist") != "load":  # an explicit --dist other than -n's default
         return None
+    from collections import OrderedDict
+
     from xdist.scheduler import LoadScopeScheduling
 
     class Scheduling(LoadScopeScheduling):
-        """A work unit per test, or per ``_unit``; units with the most tests go first
-        (``--loadscope-reorder``, xdist's default)."""
+        """Work units by ``_unit``, handed out in this order: "exclusive", the first ordinary
+        test, "heavy", then the other tests in collection order, each to whichever worker is
+        nearly out of work."""
+
+        ordered = False
 
         def _split_scope(self, nodeid: str) -> str:
             return _unit(nodeid)
+
+        def _assign_work_unit(self, node: object) -> None:
+            if not self.ordered:  # the first assignment: the queue is complete
+                self.ordered = True
+                units = list(self.workqueue.items())
+                first = [u for u in units if u[0] == "exclusive"]
+                heavy = [u for u in units if u[0] == "heavy"]
+                rest = [u for u in units if u[0] not in ("exclusive", "heavy")]
+                self.workqueue = OrderedDict(first + rest[:1] + heavy + rest[1:])
+            super()._assign_work_unit(node)  # type: ignore[arg-type]
 
     return Scheduling(config, log)
