@@ -85,6 +85,15 @@ def _exclusive(item: pytest.Item | None) -> bool:
     return item is not None and item.get_closest_marker("exclusive") is not None
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Within each file, its exclusive tests first (in their order), the others after them (in
+    theirs): a file's exclusive tests are one block, the room held from one to the next."""
+    files: dict[object, int] = {}
+    for item in items:
+        files.setdefault(item.path, len(files))
+    items.sort(key=lambda item: (files[item.path], not _exclusive(item)))
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     # Around set-up, call and tear-down: module and class fixtures set up for this item too.
@@ -94,7 +103,8 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
 
 
 EXCLUSIVE = {
-    "tests/test_record.py": "its recorder's writer runs at nice 19 (see the file)",
+    "tests/test_record.py": "its recorder's writer runs at nice 19 (see the file); the whole "
+                            "file, so its sim recording (a module fixture) is made once",
     "tests/test_fault_load.py::test_two_busy_cores_the_loop_keeps_its_schedule_or_stops_safely":
         "its load is its own",
     "tests/test_first_commands.py::test_gui_under_a_software_rendered_display_keeps_driving":
@@ -103,7 +113,8 @@ EXCLUSIVE = {
     "runs_nothing_from_it": "its recorder's writer runs at nice 19",
 }
 """The tests marked ``exclusive``, as one unit that goes first: one worker runs them back to
-back (holding the room from one to the next) while the other, after its first test, waits.
+back (holding the room from one to the next) while the other, after its first test, waits;
+then test_record.py's other tests, beside the other worker.
 Spread through the run, each of them first waited for the other worker's current test (the
 smoke training, a calibration drive: up to 20 s), and so stood idle twice. A test marked
 exclusive but not listed here is still run alone, as a unit of its own; the markers decide
@@ -163,7 +174,8 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
             if not self.ordered:  # the first assignment: the queue is complete
                 self.ordered = True
                 units = list(self.workqueue.items())
-                first = [u for u in units if u[0] == "exclusive"]
+                first = [(name, dict(sorted(tests.items(), key=lambda t: t[0] not in EXCLUSIVE)))
+                         for name, tests in units if name == "exclusive"]  # whole files last
                 heavy = [u for u in units if u[0] == "heavy"]
                 rest = [u for u in units if u[0] not in ("exclusive", "heavy")]
                 self.workqueue = OrderedDict(first + rest[:1] + heavy + rest[1:])

@@ -28,8 +28,10 @@ PATIENT = "[loop]\nwatchdog_timeout = 2.0\nmax_frame_age = 0.5\n"
 # The recorder's writer runs at nice 19 (recording/recorder.py): beside another test's busy process
 # (pytest-xdist, two workers on two cores) it gets ~1 % of a core and misses its 2 s
 # close (seen: "the disk did not take the last 0 frames within 2 s"). Nothing runs beside
-# these tests, as nothing does in a serial run.
-pytestmark = pytest.mark.exclusive
+# the tests that record through it (and the first test, which makes ``sim_run``'s recording),
+# as nothing does in a serial run; the conftest runs a file's exclusive tests first, so they
+# are one block, and the tests that only read ``sim_run`` then run beside the other worker.
+exclusive = pytest.mark.exclusive
 
 
 def replay(*args: str) -> dict:
@@ -50,6 +52,7 @@ def sim_run(tmp_path_factory):
     return root / "rec", result
 
 
+@exclusive
 def test_sim_recording_holds_every_tick_and_replays_at_round_off(sim_run):
     rec, result = sim_run
     assert result.returncode == 3, result.stderr  # the stale frame's safe stop
@@ -142,6 +145,7 @@ def test_report_writes_a_video_at_real_pace_and_a_plot(sim_run, tmp_path):
     assert (tmp_path / "t.png").is_file() and not (tmp_path / "run.mp4").exists()
 
 
+@exclusive
 def test_real_backend_recording_replays_at_round_off(tmp_path):
     runtime = RuntimeProcess(
         tmp_path, "real", bundled_policy_path(), duration=1.5,
@@ -171,6 +175,7 @@ def test_existing_recording_is_refused_before_any_motor_moves(sim_run, tmp_path)
     assert not result.ticks and sorted(p.name for p in rec.iterdir()) == before
 
 
+@exclusive
 def test_disk_nearly_full_stops_the_recording_not_the_robot(tmp_path):
     (tmp_path / "c.toml").write_text(PATIENT + "[record]\nmin_free_mb = 1e12\n")  # > any disk
     result = run_cli(["run", "--backend", "sim", "--duration", "1", "--config",
@@ -185,6 +190,7 @@ def test_disk_nearly_full_stops_the_recording_not_the_robot(tmp_path):
     assert summary["records_lost"] == len(result.ticks) and "disk" in summary["error"]
 
 
+@exclusive
 def test_directory_removed_while_recording_the_robot_drives_on(tmp_path):
     runtime = RuntimeProcess(tmp_path, "sim", bundled_policy_path(), duration=2.0,
                              config=PATIENT)
@@ -248,6 +254,7 @@ def test_close_is_bounded_when_the_writer_hangs(tmp_path):
     assert summary["frames_written"] == 10 and summary["run"]["reason"] == "test"
 
 
+@exclusive
 def test_eval_video_records_episodes_that_replay(tmp_path):
     train = Path(JETBOT_RT).with_name("jetbot-train")
     proc = subprocess.run([str(train), "eval", "--episodes", "1", "--num-envs", "1", "--json",
