@@ -71,9 +71,9 @@ class Rectangles:
 
 
 def rectangles_of(scene: Scene, world: WorldView | None = None) -> Rectangles:
-    """The scene's boxes and walls, the world's clutter (``WorldView.clutter``, when it has
-    any) and the room's walls, grown by ``ROBOT_RADIUS``."""
-    clutter = world.clutter() if world is not None and hasattr(world, "clutter") else ()
+    """The scene's boxes and walls, the world's clutter (``WorldView.clutter``; none without
+    a world) and the room's walls, grown by ``ROBOT_RADIUS``."""
+    clutter = world.clutter() if world is not None else ()
     centres, halves, yaws = [], [], []
     for piece in (*scene.pieces, *clutter):
         box = piece.as_box() if isinstance(piece, Wall) else piece

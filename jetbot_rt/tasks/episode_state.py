@@ -60,9 +60,9 @@ class EpisodeMemory(Generic[Derived]):
         except TypeError:  # not weakly referenceable: keyed by id, kept one at a time
             record = self._fallback.get(id(world))
         if record is None or record.scene is not scene or world.sim_time == 0.0:
-            derived = (record.derived if record is not None and record.scene is scene
-                       else self._derive(scene, world))
-            record = Episode(scene, derived)
+            # Derived afresh each episode: it may read the world (avoid's clutter), which a
+            # reset with the same scene can draw anew.
+            record = Episode(scene, self._derive(scene, world))
             try:
                 self._records[world] = record
             except TypeError:
