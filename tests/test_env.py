@@ -52,10 +52,31 @@ def test_make_works_in_a_fresh_interpreter_and_import_stays_light():
         " capture_output=True, text=True, check=True)\n"
         "print(light.stdout.strip())\n"
     )
+    assert last_line_printed_by(code) == "[]"
+
+
+def last_line_printed_by(code: str) -> str:
+    """``code`` run in a fresh interpreter, which must exit 0: the last line it printed."""
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                             timeout=60)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.strip().splitlines()[-1] == "[]"
+    return result.stdout.strip().splitlines()[-1]
+
+
+def test_make_works_when_jetbot_rt_was_imported_before_gymnasium():
+    """``make`` imports ``jetbot_rt``, which was imported already (without gymnasium, so
+    without registering): the ids are registered when gymnasium itself is imported, also after
+    a ``find_spec`` of it (jetbot-train's check of the ``train`` extra) that imported nothing."""
+    code = (
+        "import importlib.util, sys, jetbot_rt\n"
+        "assert 'gymnasium' not in sys.modules\n"
+        "assert importlib.util.find_spec('gymnasium') is not None\n"
+        "import gymnasium\n"
+        "env = gymnasium.make('jetbot_rt:JetbotSeek-v0')\n"
+        "print(env.unwrapped.task.name)\n"
+        "env.close()\n"
+    )
+    assert last_line_printed_by(code) == "seek"
 
 
 def test_same_seed_same_start_and_frames_different_seed_different_start(env):

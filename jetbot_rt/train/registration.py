@@ -4,8 +4,10 @@
 (``jetbot_rt.tasks.load_task``: a built-in, ``FILE.py:Class``, ``module:Class``, an installed
 plugin's); the built-ins also have ids of their own (``jetbot_rt:JetbotForward-v0``,
 ``jetbot_rt:JetbotSeek-v0``). ``make`` imports ``jetbot_rt`` first; its ``__init__`` calls
-``register_envs`` when gymnasium is already loaded (it is, inside ``make``). Gymnasium 1.x no
-longer reads plugin entry points, so that import is the hook.
+``register_envs`` when gymnasium is already loaded (it is, inside ``make``), or else once
+gymnasium is imported (``jetbot_rt._after_import``): an import of ``jetbot_rt`` made before
+gymnasium's runs nothing again. Gymnasium 1.x no longer reads plugin entry points, so these
+imports are the hook.
 """
 
 from __future__ import annotations
