@@ -171,7 +171,7 @@ def slow_when_dark_policy(path: Path) -> Path:
     from jetbot_rt.runtime.policy import OnnxPolicy
 
     probe = OnnxPolicy.load(policy_models.slow_when_dark(path, 1000, MU))
-    black = np.zeros((224, 224, 3), np.uint8)
+    black = np.zeros((policy_models.SIZE, policy_models.SIZE, 3), np.uint8)
     probe.infer(black)
     timings = []
     for _ in range(3):
