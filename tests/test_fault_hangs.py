@@ -10,6 +10,8 @@ import fcntl
 import os
 import signal
 import socket
+import struct
+import termios
 import time
 import uuid
 from pathlib import Path
@@ -58,6 +60,13 @@ def stalled_fifo(tmp_path: Path) -> tuple[Path, int]:
     return path, reader
 
 
+def pipe_full(reader: int) -> bool:
+    """No room left for another record (each is over 200 bytes; a write of one waits for room
+    for all of it): the writer is blocked for good."""
+    held = struct.unpack("i", fcntl.ioctl(reader, termios.FIONREAD, b"\0" * 4))[0]
+    return held > 4096 - 200
+
+
 def summary_lines(stdout: str) -> dict[str, str]:
     lines = {}
     for line in stdout.splitlines()[1:]:
@@ -76,16 +85,17 @@ def test_stalled_telemetry_reader_blocks_neither_the_loop_nor_the_exit(tmp_path:
     policy = make(tmp_path / "policy.onnx", MU)
     camera = live_camera(mark)
     if how == "policy-hangs":  # drive a while (the FIFO fills meanwhile), then a black frame
-        # 5 s of pattern from gst-launch's start: the warm-up of a loaded host (seen: 1.5 s
-        # at load 4) must still leave the 1.5 s of driving below before the lens goes dark
-        camera = timeline_camera(mark, 150, None)
+        # 3.5 s of pattern from gst-launch's start: the warm-up of a loaded host (seen: 1.5 s
+        # at load 4) must still leave the driving below, until the pipe is full (about half
+        # a second), before the lens goes dark
+        camera = timeline_camera(mark, 105, None)
     patient = "" if how == "policy-hangs" else PATIENT  # there the watchdog is the point
     rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(camera) + patient,
                         telemetry=fifo)
     try:
         rt.start()
         assert wait_for(lambda: not rt.board_off(), 60, interval=0.02) is not None
-        time.sleep(1.5)  # the pipe is full after well under a second of records
+        assert wait_for(lambda: pipe_full(reader), 60, interval=0.02) is not None
         assert rt.process.poll() is None
         t0 = time.monotonic()
         if how == "SIGTERM":

@@ -249,16 +249,16 @@ def camera_of_size(width: int, height: int) -> Callable[[str], str]:
                          f"video/x-raw,format=GRAY8,width={width},height={height}")
 
 
-HANG = dark_after(1.5)
-NAN = dark_after(1.5)
-SLOW = dark_after(1.5, 1.8, then_normal=True)
+HANG = dark_after(1.0)  # 30 ticks of driving first (on the real backend, the start-up's too)
+NAN = dark_after(1.0)
+SLOW = dark_after(1.0, 1.3, then_normal=True)
 CASES = [
     # -- policy --
     Case("policy-hangs", ("sim", "real"), 3, "watchdog: no tick for", WATCHDOG + 0.5,
          sim_bound_s=SIM_WATCHDOG_MIN_S + 0.5, policy=policy_models.hang_when_dark,
          sim_config=HANG[0], camera=HANG[1], loop_config="max_frame_age = 1.0\n",
          check=check_watchdog_names_its_key),
-    Case("policy-slow-then-recovers", ("sim", "real"), 0, "duration", duration=6.0,
+    Case("policy-slow-then-recovers", ("sim", "real"), 0, "duration", duration=3.5,
          policy=slow_when_dark_policy, sim_config=SLOW[0], camera=SLOW[1],
          check=check_slow_then_recovers),
     Case("policy-nan", ("sim", "real"), 3, "non-finite action",
@@ -267,7 +267,7 @@ CASES = [
          policy=policy_models.inf_when_dark, sim_config=NAN[0], camera=NAN[1]),
     Case("policy-raises", ("sim", "real"), 3, "policy inference failed",
          policy=policy_models.raise_when_dark, sim_config=NAN[0], camera=NAN[1]),
-    Case("policy-file-replaced", ("sim",), 0, "duration", duration=3.0, inject=replace_policy,
+    Case("policy-file-replaced", ("sim",), 0, "duration", duration=2.5, inject=replace_policy,
          check=check_policy_kept),
     # -- camera --
     Case("camera-stalls", ("sim",), 3, "stale frame", MAX_FRAME_AGE + 0.5,
@@ -282,7 +282,7 @@ CASES = [
     Case("camera-dies-eos", ("real",), 3, "stale frame", MAX_FRAME_AGE + 0.5,
          camera=lambda mark: f"videotestsrc name={mark} is-live=true num-buffers=45",
          loop_config="watchdog_timeout = 1.0\n"),
-    Case("camera-other-size-and-format", ("real",), 0, "duration", duration=2.0,
+    Case("camera-other-size-and-format", ("real",), 0, "duration", duration=1.0,
          camera=camera_of_size(640, 120)),
     # -- motors --
     Case("i2c-transient-oserror", ("real",), 0, "SIGTERM received", inject=i2c_noise,
@@ -306,7 +306,7 @@ CASES = [
                                   ("SIGHUP", signal.SIGHUP, ("sim",)))),
     Case("jetbot-rt-stop", ("sim", "real"), 0, "jetbot-rt stop from pid", inject=stop_command,
          timed_off=True),
-    Case("duration", ("sim", "real"), 0, "duration 2 s reached", duration=2.0),
+    Case("duration", ("sim", "real"), 0, "duration 1 s reached", duration=1.0),
 ]
 
 
