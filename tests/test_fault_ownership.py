@@ -335,7 +335,7 @@ def test_two_simulations_run_side_by_side(tmp_path: Path) -> None:
         root = tmp_path / name
         root.mkdir()
         # two worlds at once on a loaded 2-core machine: a slow rate keeps ticks on time
-        runs.append(RuntimeProcess(root, "sim", policy, duration=2.0,
+        runs.append(RuntimeProcess(root, "sim", policy, duration=1.0,
                                    config="[loop]\nrate_hz = 10\nwatchdog_timeout = 1.0\n"))
     for rt in runs:
         rt.env["JETBOT_RT_RUNTIME_DIR"] = str(tmp_path / "run")  # one directory for both

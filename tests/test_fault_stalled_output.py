@@ -101,7 +101,7 @@ def test_a_run_whose_output_nobody_reads_drives_and_stops(tmp_path: Path, stalle
         process = start_run(tmp_path, stdout, stderr)
         try:
             # past its "driving at ..." line: it drives
-            seen = wait_for(lambda: process.poll() is not None or ticks(tmp_path) >= 30,
+            seen = wait_for(lambda: process.poll() is not None or ticks(tmp_path) >= 15,
                             LIVENESS_S, interval=0.05)
             assert seen is not None and process.poll() is None, "it did not drive"
             t_told = time.monotonic()

@@ -87,7 +87,7 @@ def assert_driving_forward_left_reverse_right(chip: PCA9685Emulator) -> None:
 
 def test_sigterm_ends_with_every_output_off(robot) -> None:
     robot.start()
-    robot.wait_for_ticks(60)  # about two seconds of driving at 30 Hz
+    robot.wait_for_ticks(30)  # about a second of driving at 30 Hz
     assert_driving_forward_left_reverse_right(robot.chip)
     robot.process.send_signal(signal.SIGTERM)
     code, _out, err = robot.finish()

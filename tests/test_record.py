@@ -192,7 +192,7 @@ def test_disk_nearly_full_stops_the_recording_not_the_robot(tmp_path):
 
 @exclusive
 def test_directory_removed_while_recording_the_robot_drives_on(tmp_path):
-    runtime = RuntimeProcess(tmp_path, "sim", bundled_policy_path(), duration=2.0,
+    runtime = RuntimeProcess(tmp_path, "sim", bundled_policy_path(), duration=1.5,
                              config=PATIENT)
     runtime.args += ["--record", str(tmp_path / "rec")]
     runtime.start()

@@ -58,7 +58,7 @@ def test_constant_policy_duties_follow_the_formula(tmp_path):
 def test_forward_policy_drives_toward_the_block(tmp_path):
     policy = policy_models.constant(tmp_path / "p.onnx", (1.0, 1.0))
     result = run_cli(
-        ["run", "--backend", "sim", "--policy", str(policy), "--duration", "3",
+        ["run", "--backend", "sim", "--policy", str(policy), "--duration", "2",
          "--config", str(write_config(tmp_path, PATIENT))],
         telemetry=tmp_path / "t.jsonl",
     )

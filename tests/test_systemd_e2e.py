@@ -116,7 +116,7 @@ def test_ready_then_watchdog_twice_per_usec_in_a_sim_run(tmp_path: Path):
     policy = policy_models.constant(tmp_path / "forward.onnx", (0.5, 0.5))
     telemetry = tmp_path / "run.jsonl"
     listener = path_listener(tmp_path)
-    watchdog_usec, duration = 1_000_000, 3.0
+    watchdog_usec, duration = 1_000_000, 2.0
     env = service_env(listener, watchdog_usec, tmp_path / "run")
     # The pings are the point, not the loop's own 0.1 s watchdog, which a starved sim world on a
     # loaded host trips between ticks (safe, exit 3): 0.5 s still trips long before a 1 s gap.
@@ -147,7 +147,7 @@ def test_ready_then_watchdog_twice_per_usec_in_a_sim_run(tmp_path: Path):
 def test_hung_tick_stops_the_pings_then_safe_stop(tmp_path: Path):
     policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
     config = tmp_path / "blackout.toml"
-    config.write_text("[sim]\nblackout = [1.0, 100.0]\n")
+    config.write_text("[sim]\nblackout = [0.5, 100.0]\n")
     telemetry = tmp_path / "run.jsonl"
     listener = abstract_listener()
     env = service_env(listener, 300_000, tmp_path / "run")  # a ping every 0.1 s
@@ -162,7 +162,7 @@ def test_hung_tick_stops_the_pings_then_safe_stop(tmp_path: Path):
     assert keys[0].get("READY") == "1"
     assert keys[-1].get("STOPPING") == "1"
     pings = listener.times_of("WATCHDOG")
-    assert len(pings) >= 3, "it drove (and pinged) until the blackout at 1 s simulated time"
+    assert len(pings) >= 3, "it drove (and pinged) until the blackout at 0.5 s simulated time"
     # That no ping comes from anything but a completed tick is counted, not timed, in
     # TestWatchdogPingsComeFromCompletedTicks.
     records = read_telemetry(telemetry)
@@ -224,10 +224,10 @@ class TestWatchdogPingsComeFromCompletedTicks:
             self, tmp_path: Path) -> None:
         policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
         config = tmp_path / "robot.toml"
-        config.write_text("[loop]\nwatchdog_timeout = 2.0\n[sim]\nblackout = [0.5, 100.0]\n")
+        config.write_text("[loop]\nwatchdog_timeout = 1.0\n[sim]\nblackout = [0.5, 100.0]\n")
         telemetry = tmp_path / "run.jsonl"
         listener = abstract_listener()
-        watchdog_usec = 300_000  # a ping due every 0.1 s: 20 intervals within the timeout
+        watchdog_usec = 150_000  # a ping due every 0.05 s: 20 intervals within the timeout
         interval = watchdog_usec / 1e6 / 3
         env = service_env(listener, watchdog_usec, tmp_path / "run")
         result = jetbot_rt(
