@@ -105,7 +105,7 @@ def dry_run(tmp_path: Path, redirect: str) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "rt"))
     (tmp_path / "rt").mkdir(mode=0o700)
     command = [JETBOT_RT, "run", "--backend", "real", "--config", str(config),
-               "--board-emulator", str(tmp_path / "chip.json"), "--duration", "1",
+               "--board-emulator", str(tmp_path / "chip.json"), "--duration", "0.5",
                "--telemetry", str(tmp_path / "t.jsonl")]
     return subprocess.run(["bash", "-c", f'exec "$@" {redirect}', "bash", *command],
                           capture_output=True, text=True, timeout=LIVENESS_S, env=env)

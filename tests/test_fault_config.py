@@ -215,7 +215,7 @@ def test_a_model_path_that_is_not_utf8_loads(tmp_path: Path, name: bytes) -> Non
     policy_models.constant(Path(os.fsdecode(path)), (0.5, 0.5))
     telemetry = tmp_path / "t.jsonl"
     result = run_cli(["run", "--backend", "sim", "--policy", os.fsdecode(path),
-                      "--duration", "1"], telemetry=telemetry,
+                      "--duration", "0.5"], telemetry=telemetry,
                      env=dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(tmp_path / "run")))
     assert "incompatible constructor" not in result.stderr
     assert result.returncode in (0, 3), result.stderr  # 3: a watchdog trip on a loaded host

@@ -312,7 +312,7 @@ def test_a_policy_that_hangs_on_its_first_frame_is_refused_at_warm_up(tmp_path) 
     """The warm-up runs in a thread with a time limit ([loop] warmup_timeout): a model that
     never returns is a usage error, and the process ends although that thread cannot."""
     policy = policy_models.hang_when_dark(tmp_path / "hang.onnx")
-    config = "[sim]\nblackout = [0.0, 1000.0]\n[loop]\nwarmup_timeout = 2.0\n"
+    config = "[sim]\nblackout = [0.0, 1000.0]\n[loop]\nwarmup_timeout = 1.0\n"
     rt = RuntimeProcess(tmp_path, "sim", policy, config=config, duration=5.0)
     try:
         result = rt.start().finish(60)
@@ -320,7 +320,7 @@ def test_a_policy_that_hangs_on_its_first_frame_is_refused_at_warm_up(tmp_path) 
         rt.kill()
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "warm-up inference did not finish within 2.0 s" in lines[0]
+    assert len(lines) == 1 and "warm-up inference did not finish within 1.0 s" in lines[0]
     assert not result.ticks
 
 

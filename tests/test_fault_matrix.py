@@ -258,7 +258,7 @@ CASES = [
          sim_bound_s=SIM_WATCHDOG_MIN_S + 0.5, policy=policy_models.hang_when_dark,
          sim_config=HANG[0], camera=HANG[1], loop_config="max_frame_age = 1.0\n",
          check=check_watchdog_names_its_key),
-    Case("policy-slow-then-recovers", ("sim", "real"), 0, "duration", duration=3.5,
+    Case("policy-slow-then-recovers", ("sim", "real"), 0, "duration", duration=3.0,
          policy=slow_when_dark_policy, sim_config=SLOW[0], camera=SLOW[1],
          check=check_slow_then_recovers),
     Case("policy-nan", ("sim", "real"), 3, "non-finite action",
@@ -450,7 +450,7 @@ def test_unwritable_telemetry_keeps_driving_and_counts_lost_records(tmp_path: Pa
         else:
             rt.wait_ticks(15)
             shutil.rmtree(directory)
-        time.sleep(1.5)  # 45 ticks at 30 Hz: at least 30 on a loaded host
+        time.sleep(1.0)  # 30 ticks at 30 Hz: at least 20 on a loaded host
         assert rt.process.poll() is None and not rt.board_off(), "still driving"
         t_signal = time.monotonic()
         os.kill(rt.pid, signal.SIGTERM)
@@ -464,8 +464,8 @@ def test_unwritable_telemetry_keeps_driving_and_counts_lost_records(tmp_path: Pa
     (line,) = [ln for ln in result.stderr.splitlines() if "telemetry" in ln]
     assert expected in line and "still driving" in line
     lost = int(summary_value(result.stdout, "telemetry").split()[0])
-    assert lost >= 30, result.stdout  # a second of ticks at least, and the end event
-    assert int(summary_value(result.stdout, "ticks")) >= 30
+    assert lost >= 20, result.stdout  # two thirds of a second of ticks, and the end event
+    assert int(summary_value(result.stdout, "ticks")) >= 20
     assert summary_value(result.stdout, "stopped") == "SIGTERM received"
     assert t_off is not None and rt.board_off()
     assert_no_gst_left(mark)

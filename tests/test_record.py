@@ -148,7 +148,7 @@ def test_report_writes_a_video_at_real_pace_and_a_plot(sim_run, tmp_path):
 @exclusive
 def test_real_backend_recording_replays_at_round_off(tmp_path):
     runtime = RuntimeProcess(
-        tmp_path, "real", bundled_policy_path(), duration=1.5,
+        tmp_path, "real", bundled_policy_path(), duration=1.0,
         config=PATIENT + '[camera]\nsource = "gst:videotestsrc is-live=true pattern=ball"\n'
         "start_timeout = 5\n")
     runtime.args += ["--record", str(tmp_path / "rec")]

@@ -41,7 +41,7 @@ def test_the_tutorial_task_trains_evaluates_and_drives_from_its_own_file(tmp_pat
     config = tmp_path / "park.toml"
     config.write_text(f'[sim]\ntask = "{task}"\n')
     driven = run_cli(["run", "--backend", "sim", "--policy", str(policy), "--config",
-                      str(config), "--duration", "1"])
+                      str(config), "--duration", "0.5"])
     assert driven.returncode == 0, driven.stderr
     assert "travelled" in driven.stdout + driven.stderr
 

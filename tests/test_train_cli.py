@@ -74,11 +74,11 @@ def test_runtime_loads_and_drives_the_trained_onnx(smoke_run, tmp_path, monkeypa
     patient = tmp_path / "patient.toml"  # the watchdog is not the point (starved: it trips)
     patient.write_text("[loop]\nwatchdog_timeout = 1.0\n")
     result = run_cli(["run", "--backend", "sim", "--policy", str(smoke_run / "policy.onnx"),
-                      "--duration", "1", "--config", str(patient)],
+                      "--duration", "0.5", "--config", str(patient)],
                      telemetry=tmp_path / "t.jsonl")
     assert result.returncode == 0, result.stderr
     ticks = result.ticks
-    assert len(ticks) >= 5  # of 30 at 30 Hz: how many a loaded machine keeps is not the point
+    assert len(ticks) >= 5  # of 15 at 30 Hz: how many a loaded machine keeps is not the point
     assert all(np.isfinite(t["mu"]).all() and len(t["cmd"]) == 2 for t in ticks)
     assert any(abs(c) > 0 for t in ticks for c in t["cmd"])  # it did drive
 
