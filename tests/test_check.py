@@ -74,29 +74,29 @@ def test_a_camera_slower_than_configured_fails(robot) -> None:
     assert "slower than 30 fps" in rows(result.stdout)["camera"]
 
 
-# --frames 20: check waits 2 s and two of [camera] fps's periods a frame (3.3 s), in which a
-# 5 fps camera brings about 16, too few
+# [camera] fps 60 and --frames 15: check waits 2 s and two of [camera] fps's periods a frame
+# (2.5 s), in which a 5 fps camera brings about 12, too few
 @pytest.mark.parametrize(("source", "expected", "not_expected"), [
-    # a live camera at 5 fps while [camera] fps says 30: slow, not stalled
+    # a live camera at 5 fps while [camera] fps says 60: slow, not stalled
     ("gst:videotestsrc is-live=true ! video/x-raw,framerate=5/1",
-     "the camera delivers 5.0 fps, slower than [camera] fps 30", "stalled"),
+     "the camera delivers 5.0 fps, slower than [camera] fps 60", "stalled"),
     ("gst:videotestsrc is-live=true ! video/x-raw,framerate=4/1",
-     "the camera delivers 4.0 fps, slower than [camera] fps 30", "stalled"),
+     "the camera delivers 4.0 fps, slower than [camera] fps 60", "stalled"),
     # (the rate is measured from arrival times: on a loaded host it may read 4.9 for 5, so the
     # number is compared within 0.5 fps, the words exactly)
     # a camera that stops after 3 frames: stalled
-    ("gst:videotestsrc is-live=true num-buffers=3", "3 of 20 frames arrived, then the camera "
+    ("gst:videotestsrc is-live=true num-buffers=3", "3 of 15 frames arrived, then the camera "
      "stalled", "slower"),
 ])
 def test_a_slow_camera_is_called_slow_and_a_stalled_one_stalled(robot, source: str,
                                                                  expected: str,
                                                                  not_expected: str) -> None:
-    config = write_config(robot, source)
+    config = write_config(robot, source, fps=60)
     env = dict(os.environ, JETBOT_RT_RUNTIME_DIR=str(robot / "run"))
     result = subprocess.run(
         [sys.executable, "-m", "jetbot_rt.cli", "check", "--config", str(config),
          EMULATOR_FLAG, str(robot / "chip.json"),
-         "--policy", str(robot / "policy.onnx"), "--frames", "20"],
+         "--policy", str(robot / "policy.onnx"), "--frames", "15"],
         capture_output=True, text=True, timeout=60, env=env)
     assert result.returncode == 1, result.stdout + result.stderr
     camera = rows(result.stdout)["camera"]

@@ -222,7 +222,7 @@ def test_listen_addresses_are_ip_literals_with_a_port() -> None:
 
 
 def test_a_client_that_never_reads_gets_fewer_frames_and_is_dropped(local_big, monkeypatch):
-    monkeypatch.setattr(monitor_server, "SEND_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(monitor_server, "SEND_TIMEOUT_S", 0.5)
     stalled = socket.socket()
     stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     stalled.connect(("127.0.0.1", local_big.port))
