@@ -63,6 +63,23 @@ def test_a_stale_socket_file_is_replaced(sock_path) -> None:
         server.close()
 
 
+def test_a_stale_socket_alone_is_answered_without_sitting_out_the_timeout(sock_path) -> None:
+    """Nothing to wait for once the only socket refused: the asking ends (it waited out its
+    whole timeout on an empty selector, so `jetbot-rt stop` after a crash answered 1 s late).
+    Asked with an hour's timeout, it must end long before."""
+    sock_path.parent.mkdir(mode=0o700)
+    dead = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    dead.bind(str(sock_path))
+    dead.close()
+    replies = []
+    asking = threading.Thread(target=lambda: replies.append(request_stop(sock_path, 3600.0)),
+                              daemon=True)
+    asking.start()
+    asking.join(60.0)
+    assert not asking.is_alive(), "request_stop waited out its timeout on a stale socket"
+    assert not replies[0] and not replies[0].acknowledged and not replies[0].unreachable
+
+
 def test_a_live_socket_is_not_taken_over(sock_path) -> None:
     first = ControlServer(lambda _r: None, sock_path)
     first.start()

@@ -344,7 +344,9 @@ def request_stop(path: Path | None = None, timeout: float = ASK_TOTAL_S) -> Stop
                     reply.unreachable.append(f"{printable(candidate)}: {outcome}")
             to_connect = retry
             left = deadline - time.monotonic()
-            if left <= 0:
+            # Nothing to wait for (every socket stale or refused): a select on an empty map
+            # would sit out the whole timeout, and `jetbot-rt stop` answer 1 s late.
+            if left <= 0 or not (to_connect or selector.get_map()):
                 break
             wait = min(left, _RETRY_CONNECT_S) if to_connect else left
             for key, _events in selector.select(wait):
