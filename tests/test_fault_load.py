@@ -53,9 +53,10 @@ def test_two_busy_cores_the_loop_keeps_its_schedule_or_stops_safely(tmp_path: Pa
     nice level as the runtime: every missed deadline is counted as an overrun and no two ticks
     start closer than half a period (it never bursts to catch up). Whether the loop keeps up is
     the scheduler's business, not an assertion (a timing is never one): on a shared 2-core VM a
-    starved loop can miss its 0.1 s watchdog, and then the run must end the safe way, motors
-    off, exit 3, a ``safe_stop`` naming the watchdog. Any other ending fails. The 30 s figures
-    in docs/SAFETY.md come from ``benchmarks/bench_load.py``."""
+    starved loop can miss its 0.1 s watchdog, or the starved camera deliver a frame older than
+    ``max_frame_age`` (seen in CI: 165 ms), and then the run must end the safe way, motors off,
+    exit 3, a ``safe_stop`` naming the watchdog or the stale frame. Any other ending fails.
+    The 30 s figures in docs/SAFETY.md come from ``benchmarks/bench_load.py``."""
     mark = f"fm{uuid.uuid4().hex[:12]}"
     policy = policy_models.constant(tmp_path / "policy.onnx", (1.0, -0.5))
     config = (f'[camera]\nsource = "gst:videotestsrc name={mark} is-live=true"\n'
@@ -68,7 +69,7 @@ def test_two_busy_cores_the_loop_keeps_its_schedule_or_stops_safely(tmp_path: Pa
     else:
         assert result.returncode == 3, result.stdout + result.stderr
         (stop,) = result.events("safe_stop")
-        assert stop["reason"].startswith("watchdog"), stop
+        assert stop["reason"].startswith(("watchdog", "stale frame")), stop
     ticks = result.ticks
     smallest_gap = assert_fixed_rate(ticks, PERIOD)
     # every deadline up to the last tick was either ticked or counted as an overrun
