@@ -95,7 +95,7 @@ def env_steps_per_s(env: JetbotEnv, steps: int, seed: int,
 def env_worker(path: dict, steps: int, seed: int, ready: mp.Barrier, out: mp.Queue) -> None:
     config = Config()
     config.sim.physics_hz = path["physics_hz"]
-    env = JetbotEnv("forward", config, image_size=(path["size"], path["size"]))
+    env = JetbotEnv(path.get("task", "forward"), config, image_size=(path["size"], path["size"]))
     out.put(env_steps_per_s(env, steps, seed, ready.wait))
 
 

@@ -78,6 +78,17 @@ def test_regression_fits_the_labels():
     assert np.abs(mu - labels).max() < 0.1
 
 
+def test_stops_and_turns_on_the_spot_weigh_their_own_weights():
+    from jetbot_rt.train.dagger import label_weights
+    from jetbot_rt.train.hyperparams import dagger_args
+
+    args = dagger_args("avoid", {"stop_weight": 4.0, "turn_weight": 3.0})
+    labels = np.array([[0.8, 0.9], [0.0, 0.0], [-0.5, -0.1], [-0.9, 0.9], [0.3, -0.2],
+                       [0.0, 0.7]], dtype=np.float32)
+    assert label_weights(labels, args).tolist() == [1.0, 4.0, 4.0, 3.0, 3.0, 1.0]
+    assert dagger_args("avoid").turn_weight == 1.0  # off unless asked for
+
+
 def test_dataset_keeps_every_added_frame_in_order_as_it_grows():
     from jetbot_rt.train.dagger import Dataset
 

@@ -98,6 +98,16 @@ def jitter(x: torch.Tensor, amount: float, rng: np.random.Generator) -> torch.Te
     return (((x - mean) * contrast + mean) * brightness * channels).clamp(0.0, 1.0)
 
 
+def label_weights(labels: np.ndarray, args: DAggerArgs) -> np.ndarray:
+    """Each frame's loss weight from its ``[N, 2]`` label: ``stop_weight`` for a stop or a
+    back-off (both wheels <= 0), ``turn_weight`` for a turn on the spot (one wheel backwards,
+    the other forwards), else 1."""
+    stop = np.all(labels <= 0.0, axis=1)
+    spin = (labels.min(axis=1) < 0.0) & (labels.max(axis=1) > 0.0)
+    return np.where(stop, args.stop_weight,
+                    np.where(spin, args.turn_weight, 1.0)).astype(np.float32)
+
+
 def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
             args: DAggerArgs, rng: np.random.Generator) -> float:
     """Weighted MSE of ``mu`` onto the labels over ``args.train_samples`` frames; the mean
@@ -105,9 +115,7 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
     model.train()
     losses: list[float] = []
     device = next(model.parameters()).device
-    stop = np.all(data.labels <= 0.0, axis=1)  # stop or back off
-    weights = torch.from_numpy(np.where(stop, args.stop_weight, 1.0).astype(np.float32)
-                               ).to(device)
+    weights = torch.from_numpy(label_weights(data.labels, args)).to(device)
     labels = torch.from_numpy(data.labels).to(device)
     passes = -(-args.train_samples // max(len(data), 1))
     order = np.concatenate([rng.permutation(len(data)) for _ in range(passes)])

@@ -295,6 +295,16 @@ class PPOArgs(CurriculumOptions):
     (docs/TRAINING.md, "Speed"). Same PPO: the rollout's weights, SAME_STEP resets, reward
     normalisation in step order. False, ``workers`` 0 and ``ray``: the learner computes each
     step's actions, batched over the envs (on its device)."""
+    overlap: bool = False
+    """With the policy in the env workers: they collect the next rollout while the learner
+    updates on this one (Sample Factory's overlap), with the weights from before the update,
+    so a rollout's actions lag the learner's weights by one update. The loss keeps PPO's clip
+    around the learner's weights at the update's start and weighs each sample by their
+    probability over the collecting weights', truncated at 1 (IMPALA's ``rho``; Hilton et al.
+    2021's decoupled PPO); values and advantages are the learner's. For a learner on a GPU or
+    spare cores: with every core stepping an env, the update and the workers share them
+    (docs/TRAINING.md, "Speed"). Not with a curriculum (its difficulty would reach the
+    workers a rollout late)."""
     device: str = "auto"
     """Where the learner (network, rollout buffers, optimizer, the rollout's forward pass)
     runs: "auto" (CUDA when torch sees a GPU, else the CPU), "cpu", "cuda" or "cuda:N". Env
@@ -386,6 +396,12 @@ class PPOArgs(CurriculumOptions):
         return Shaping(self.reward_transform, self.shaping_coef, self.aim_coef,
                        self.success_bonus, self.fail_penalty)
 
+    @property
+    def samples_in_workers(self) -> bool:
+        """Whether the env workers run the policy through whole rollouts
+        (``rollout.WorkerRollouts``): ``sample_in_workers`` with worker processes, no Ray."""
+        return self.sample_in_workers and self.ray is None and self.workers != 0
+
     def validate(self) -> None:
         """``OptionError`` for the first option out of range (before any env starts)."""
         check_fields(self, SIGNED)
@@ -394,6 +410,12 @@ class PPOArgs(CurriculumOptions):
                 not 0 < self.workers <= self.num_envs:
             raise OptionError("workers", f"with ray must be 1 .. num_envs ({self.num_envs}), "
                                          f"got {self.workers}")
+        if self.overlap and not self.samples_in_workers:
+            raise OptionError("overlap", "needs the policy in the env workers (worker "
+                                         "processes, sample_in_workers, no ray)")
+        if self.overlap and self.curriculum:
+            raise OptionError("overlap", "cannot run with curriculum: the difficulty would "
+                                         "reach the workers a rollout late")
         if self.ray is None and self.workers not in (None, 0, self.num_envs):
             raise OptionError("workers", f"must be 0 (envs in this process) or num_envs "
                                          f"({self.num_envs}, one process each), got "
@@ -548,6 +570,10 @@ class DAggerArgs(CurriculumOptions):
     stop_weight: float = 4.0
     """Loss weight of frames the expert labels stop or back off (both wheels <= 0): few, and
     the ones that decide whether the block is pushed."""
+    turn_weight: float = 1.0
+    """Loss weight of frames the expert labels a turn on the spot (one wheel backwards, the
+    other forwards): avoid's "blocked", rare and the ones that decide a touch, which its
+    student under-answered ((+0.5, +0.9) for (-0.9, +0.9)). 1: weighed as any frame."""
     stop_distance: float = Expert.stop_distance
     """m; the expert commands zero from this distance to the goal on (``Expert``)."""
     min_forward: float = Expert.min_forward

@@ -9,6 +9,10 @@ the run directory (``run_dir.py``). The reward the learner sees is built by wrap
 MLP of the task's privileged simulator state (``hyperparams.CriticConfig``), read at training
 time only; the actor, and so the exported ONNX, is the same image network as ever. Nothing
 else changes: the same rollouts, GAE, clipped surrogate and value loss.
+
+``--overlap`` collects the next rollout while the learner updates on this one
+(``rollout.py``); its samples come from the weights of one update before, each weighed in the
+surrogate by ``min(1, pi_learner / pi_collecting)``.
 """
 
 from __future__ import annotations
@@ -78,13 +82,19 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
     the clipped surrogate, the value loss and the entropy bonus, gradients clipped. With the
     asymmetric critic the value is the critic's of ``rollout.states``, and the actor's and
     the critic's gradients are clipped each to their own norm (two networks: the critic's
-    gradient does not shrink the actor's step)."""
+    gradient does not shrink the actor's step). A rollout collected with older weights
+    (``rollout.behaviour_logprobs``) is the decoupled surrogate (Hilton et al. 2021): the
+    clip stays around the learner's weights at the update's start (``rollout.logprobs``) and
+    each sample is weighed by their probability over the collecting weights', truncated at 1
+    as IMPALA's V-trace truncates its ``rho``."""
     obs = rollout.obs.reshape((-1, *rollout.obs.shape[2:]))
     states = None if rollout.states is None else rollout.states.reshape(
         -1, rollout.states.shape[-1])
     clipped = ([model.actor_parameters(), model.critic_parameters()] if states is not None
                else [list(model.parameters())])
     actions, old_logprobs = rollout.actions.reshape(-1, 2), rollout.logprobs.reshape(-1)
+    lag_weights = (None if rollout.behaviour_logprobs is None else
+                   (old_logprobs - rollout.behaviour_logprobs.reshape(-1)).exp().clamp(max=1.0))
     advantages, returns = advantages.reshape(-1), returns.reshape(-1)
     batch_size = len(old_logprobs)
     minibatch_size = max(1, batch_size // options.num_minibatches)
@@ -104,8 +114,10 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
                 clipfracs.append(((ratio - 1.0).abs() > clip).float().mean().item())
             mb_adv = advantages[mb]
             mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
-            policy_loss = torch.max(-mb_adv * ratio,
-                                    -mb_adv * ratio.clamp(1 - clip, 1 + clip)).mean()
+            surrogate = torch.max(-mb_adv * ratio, -mb_adv * ratio.clamp(1 - clip, 1 + clip))
+            if lag_weights is not None:
+                surrogate = surrogate * lag_weights[mb]
+            policy_loss = surrogate.mean()
             value_loss = 0.5 * ((new_value - returns[mb]) ** 2).mean()
             loss = policy_loss - options.ent_coef * entropy + options.vf_coef * value_loss
             optimizer.zero_grad()
@@ -215,13 +227,18 @@ class _Run:
         if options.anneal_lr:
             frac = max(0.0, 1.0 - progress.global_step / options.total_timesteps)
             self.optimizer.param_groups[0]["lr"] = frac * options.learning_rate
-        rollout = self.source.collect(model, update)
+        # With overlap the workers collect the next rollout during this update, unless
+        # this is the last: nothing may be left in flight at the end.
+        overlapping = options.overlap and (progress.global_step + options.num_envs
+                                           * options.num_steps < options.total_timesteps)
+        rollout = self.source.collect(model, update, prefetch=overlapping)
         self.episodes.add(rollout.episodes)
         with torch.no_grad():
             next_value = model.value(rollout.next_obs, rollout.next_state)
         advantages, returns = gae(rollout.rewards, rollout.values, rollout.dones, next_value,
                                   rollout.next_done, options.gamma, options.gae_lambda)
-        torch.set_num_threads(options.update_threads)
+        # the update's threads take the cores the workers leave idle: none while they collect
+        torch.set_num_threads(options.torch_threads if overlapping else options.update_threads)
         stats = ppo_update(model, self.optimizer, rollout, advantages, returns, options,
                            self.rng)
         torch.set_num_threads(options.torch_threads)

@@ -20,6 +20,14 @@ With the asymmetric critic (``model.critic``, PPO's ``--critic state``) the envs
 task's privileged state in their info (``wrappers.CriticState``) and the rollout keeps it
 beside each frame (``Rollout.states``): every value -- of a step, of a truncated episode's
 final observation, of the next rollout's first -- is the critic's of that state.
+
+With ``overlap`` (PPO's ``--overlap``) ``WorkerRollouts`` sends the workers the next rollout's
+call before the learner updates on this one, so the workers step while the learner learns. That
+rollout was collected with the weights of one update before: the learner recomputes its
+log-probabilities and values with its own weights (``Rollout.logprobs``, ``values``) and keeps
+the collecting weights' (``Rollout.behaviour_logprobs``) for ``ppo.ppo_update``'s importance
+weight. A truncated episode's bootstrap value stays the collecting weights' (its final frame
+is not sent back).
 """
 
 from __future__ import annotations
@@ -62,6 +70,9 @@ class Rollout:
     (``[num_steps, num_envs, state_size]``), which the critic reads; else None."""
     next_state: torch.Tensor | None = None
     """With the asymmetric critic: the state of ``next_obs``."""
+    behaviour_logprobs: torch.Tensor | None = None
+    """A rollout collected with older weights than the learner's (``overlap``): their
+    log-probabilities of its actions, while ``logprobs`` are the learner's; else None."""
 
     @property
     def steps(self) -> int:
@@ -103,20 +114,24 @@ class RolloutSource:
     def _states(self, states: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.asarray(states, dtype=np.float32), device=self.device)
 
-    def collect(self, model: ActorCritic, update: int) -> Rollout:
+    def collect(self, model: ActorCritic, update: int, prefetch: bool = False) -> Rollout:
+        """Rollout ``update`` with the policy of ``model``. ``prefetch``: before returning,
+        start collecting rollout ``update + 1`` with the same weights (``WorkerRollouts``
+        alone; the others ignore it)."""
         raise NotImplementedError
 
     def close(self, interrupted: bool) -> None:
         close_vector_env(self.envs, interrupted)
 
-    def _rollout(self, episodes: list[tuple[float, float, float]]) -> Rollout:
+    def _rollout(self, episodes: list[tuple[float, float, float]],
+                 behaviour_logprobs: torch.Tensor | None = None) -> Rollout:
         return Rollout(self.obs, self.actions, self.logprobs, self.rewards, self.dones,
                        self.values, self.next_obs, self.next_done, episodes, self.states,
-                       self.next_state)
+                       self.next_state, behaviour_logprobs)
 
 
 class LearnerRollouts(RolloutSource):
-    def collect(self, model: ActorCritic, update: int) -> Rollout:
+    def collect(self, model: ActorCritic, update: int, prefetch: bool = False) -> Rollout:
         episodes: list[tuple[float, float, float]] = []
         for step in range(self.options.num_steps):
             self.obs[step] = self.next_obs
@@ -167,19 +182,37 @@ class LearnerRollouts(RolloutSource):
 
 
 class WorkerRollouts(RolloutSource):
-    def collect(self, model: ActorCritic, update: int) -> Rollout:
-        options, device = self.options, self.device
+    in_flight: int | None = None
+    """The update whose rollout the workers are collecting with older weights (prefetched),
+    if any."""
+    behaviour_logprobs: torch.Tensor | None = None
+
+    def _send(self, model: ActorCritic, update: int) -> None:
         # numpy, not tensors: torch pickles a tensor as a shared-memory file descriptor
         # handed over by a resource_sharer thread, which prints a traceback when a worker
-        # dies on Ctrl-C mid-handover.
+        # dies on Ctrl-C mid-handover. call_async pickles them now: the update may change
+        # the model's tensors in place the moment it returns.
         weights = {name: w.numpy() for name, w in to_cpu(model.actor_state_dict()).items()}
-        segment = stack_segments(self.envs.unwrapped.call(
-            "collect", weights, options.num_steps, (options.seed, update)))
+        self.envs.unwrapped.call_async("collect", weights, self.options.num_steps,
+                                       (self.options.seed, update))
+
+    def collect(self, model: ActorCritic, update: int, prefetch: bool = False) -> Rollout:
+        options, device = self.options, self.device
+        if self.in_flight is None:
+            self._send(model, update)
+        elif self.in_flight != update:
+            raise RuntimeError(f"rollout {self.in_flight} is in flight, not {update}")
+        lagged, self.in_flight = self.in_flight is not None, None
+        segment = stack_segments(self.envs.unwrapped.call_wait())
+        if prefetch:
+            self._send(model, update + 1)
+            self.in_flight = update + 1
         frames = torch.from_numpy(segment["obs"]).to(device)
         self.obs[:] = model.preprocess(frames.flatten(0, 1)).reshape(self.obs.shape)
         for buf, key in ((self.actions, "actions"), (self.logprobs, "logprobs"),
                          (self.values, "values")):
             buf[:] = torch.from_numpy(segment[key]).to(device)
+        behaviour = self._learners_view(model) if lagged else None
         done = segment["terminated"] | segment["truncated"]
         self.dones[0] = self.next_done
         self.dones[1:] = torch.from_numpy(done[:-1]).to(device)
@@ -193,7 +226,29 @@ class WorkerRollouts(RolloutSource):
                     for _, _, episode_return, distance, success in segment["episodes"]]
         self.next_obs = model.preprocess(torch.from_numpy(segment["next_obs"]).to(device))
         self.next_done = torch.as_tensor(done[-1], dtype=torch.float32, device=device)
-        return self._rollout(episodes)
+        return self._rollout(episodes, behaviour)
+
+    def _learners_view(self, model: ActorCritic, chunk: int = 1024) -> torch.Tensor:
+        """For a rollout collected with older weights: ``logprobs`` and ``values`` become
+        the learner's (the image head's values; the critic's are set after this); the
+        collecting weights' log-probabilities are returned."""
+        if self.behaviour_logprobs is None:
+            self.behaviour_logprobs = torch.zeros_like(self.logprobs)
+        self.behaviour_logprobs.copy_(self.logprobs)
+        obs, actions = self.obs.flatten(0, 1), self.actions.flatten(0, 1)
+        logprobs, values = self.logprobs.view(-1), self.values.view(-1)
+        with torch.no_grad():
+            for begin in range(0, len(obs), chunk):
+                part = slice(begin, begin + chunk)
+                mu, log_std, value = model.heads(obs[part])
+                logprobs[part] = normal_log_prob(actions[part], mu, log_std.exp()).sum(-1)
+                values[part] = value.squeeze(-1)
+        return self.behaviour_logprobs
+
+    def close(self, interrupted: bool) -> None:
+        # a prefetched rollout still in flight (an error in the update): gymnasium's close
+        # would wait for it; end the workers instead, as after Ctrl-C
+        close_vector_env(self.envs, interrupted or self.in_flight is not None)
 
     def _critic_values(self, model: ActorCritic, segment: dict[str, Any]) -> None:
         """Fill ``states``, ``values`` and ``next_state`` from the segment's states and set its
@@ -210,15 +265,10 @@ class WorkerRollouts(RolloutSource):
             bootstrapped.shape), 0.0)
 
 
-def samples_in_workers(options: PPOArgs) -> bool:
-    """Whether the env workers run the policy through whole rollouts (``WorkerRollouts``)."""
-    return options.sample_in_workers and options.ray is None and options.workers != 0
-
-
 def make_rollout_source(options: PPOArgs, model: ActorCritic,
                         device: torch.device) -> RolloutSource:
     """The source ``options`` ask for, with its vector env started."""
-    sampling = samples_in_workers(options)
+    sampling = options.samples_in_workers
     critic = model.critic_config
     spec = EnvSpec(options.task, options.config, options.shaping, model.config.image_size,
                    keep=EPISODE_INFO if critic is None else (*EPISODE_INFO, CRITIC_STATE),

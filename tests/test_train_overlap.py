@@ -1,0 +1,121 @@
+"""PPO's ``--overlap``: the workers collect the next rollout while the learner updates, with
+the weights from before the update. The learner's view of a lagged rollout (its own
+log-probabilities and values, the collecting weights' kept apart), the decoupled surrogate
+that is PPO's where nothing lags, nothing in flight at the end, resume, and the refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from train_runner import train_main
+
+from jetbot_rt.train import ppo
+from jetbot_rt.train.hyperparams import ModelConfig, PPOArgs
+from jetbot_rt.train.model import ActorCritic, normal_log_prob
+from jetbot_rt.train.rollout import Rollout, WorkerRollouts
+
+pytest.importorskip("pybullet")
+
+SIZE = 16
+
+
+def _rollout(model: ActorCritic, behaviour_shift: float | None) -> Rollout:
+    """A 4-step, 2-env rollout of random frames with the model's own actions; with
+    ``behaviour_shift`` the collecting weights' log-probabilities are the model's plus it."""
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.randint(0, 256, (8, SIZE, SIZE, 3), generator=gen).float()
+    with torch.no_grad():
+        obs = model.preprocess(frames)
+        mu, log_std, value = model.heads(obs)
+        actions = mu + 0.3 * torch.randn(mu.shape, generator=gen)
+        logprobs = normal_log_prob(actions, mu, log_std.exp()).sum(-1)
+    shape = (4, 2)
+    behaviour = None if behaviour_shift is None else (logprobs + behaviour_shift).reshape(shape)
+    return Rollout(obs.reshape(4, 2, *obs.shape[1:]), actions.reshape(4, 2, 2),
+                   logprobs.reshape(shape), torch.randn(shape, generator=gen),
+                   torch.zeros(shape), value.reshape(shape), obs[:2], torch.zeros(2), [],
+                   behaviour_logprobs=behaviour)
+
+
+def _updated(behaviour_shift: float | None, epochs: int = 2,
+             minibatches: int = 2) -> tuple[dict[str, torch.Tensor], float]:
+    torch.manual_seed(1)
+    model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8))
+    rollout = _rollout(model, behaviour_shift)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-2)
+    options = PPOArgs(update_epochs=epochs, num_minibatches=minibatches)
+    advantages = torch.linspace(-1, 1, 8).reshape(4, 2)
+    stats = ppo.ppo_update(model, optimizer, rollout, advantages, advantages + 1, options,
+                           np.random.default_rng(0))
+    return {k: v.clone() for k, v in model.state_dict().items()}, stats.policy_loss
+
+
+def test_the_decoupled_surrogate_is_ppos_where_nothing_lags():
+    plain, plain_loss = _updated(None)
+    same, same_loss = _updated(0.0)  # collected with the learner's own weights: weight 1
+    less_likely, _ = _updated(-1.0)  # the learner's action more likely: truncated at 1
+    assert same_loss == plain_loss
+    for name in plain:
+        assert torch.equal(plain[name], same[name]), name
+        assert torch.equal(plain[name], less_likely[name]), name
+    # the collecting weights made the samples e times likelier than the learner's: each is
+    # weighed by 1/e; in one step over the whole rollout (every ratio 1) the loss is 1/e
+    _, one_step = _updated(None, epochs=1, minibatches=1)
+    _, lagged_one_step = _updated(1.0, epochs=1, minibatches=1)
+    assert lagged_one_step == pytest.approx(one_step / np.e, rel=1e-5)
+
+
+def test_overlapped_training_lags_by_one_update_ends_with_nothing_in_flight_and_resumes(
+        tmp_path, monkeypatch):
+    seen: list[tuple[bool, torch.Tensor, torch.Tensor | None]] = []
+    """Per update: whether the next rollout was in flight, the learner's and the collecting
+    weights' log-probabilities."""
+    sources: list[WorkerRollouts] = []
+    update = ppo.ppo_update
+
+    def spy(model, optimizer, rollout, *args):
+        seen.append((sources[-1].in_flight is not None, rollout.logprobs.clone(),
+                     None if rollout.behaviour_logprobs is None
+                     else rollout.behaviour_logprobs.clone()))
+        return update(model, optimizer, rollout, *args)
+
+    real_source = ppo.make_rollout_source
+
+    def keep(*args):
+        sources.append(real_source(*args))
+        return sources[-1]
+
+    monkeypatch.setattr(ppo, "ppo_update", spy)
+    monkeypatch.setattr(ppo, "make_rollout_source", keep)
+    args = PPOArgs(num_envs=2, num_steps=32, total_timesteps=256, out=str(tmp_path),
+                   update_epochs=1, progress=False, overlap=True)
+    summary = ppo.train(args)
+    assert summary["global_step"] == 256 and summary["updates"] == 4
+    assert isinstance(sources[0], WorkerRollouts) and sources[0].in_flight is None
+    assert [in_flight for in_flight, *_ in seen] == [True, True, True, False]
+    assert seen[0][2] is None  # the first rollout: the learner's own weights
+    for _, learner, behaviour in seen[1:]:
+        # collected before the last update: the learner's probabilities are its own
+        assert behaviour is not None and not torch.equal(learner, behaviour)
+    assert (tmp_path / "policy.onnx").stat().st_size > 0
+
+    seen.clear()
+    resumed = ppo.train(PPOArgs(num_envs=2, num_steps=32, total_timesteps=320,
+                                out=str(tmp_path), update_epochs=1, progress=False,
+                                overlap=True, resume=True))
+    assert resumed["global_step"] == 320 and len(seen) == 1
+    assert seen[0][0] is False and seen[0][2] is None  # the last update: nothing prefetched
+
+
+@pytest.mark.parametrize(("flags", "needle"), [
+    (("--workers", "0"), "--overlap needs the policy in the env workers"),
+    (("--no-sample-in-workers",), "--overlap needs the policy in the env workers"),
+    (("--curriculum", "--task", "seek", "--algo", "ppo"), "--overlap cannot run with curriculum"),
+])
+def test_overlap_where_it_cannot_run_is_one_line_and_exit_2(tmp_path, capsys, flags, needle):
+    out = tmp_path / "run"
+    code, _, err = train_main(capsys, "train", "--overlap", *flags, "--out", str(out))
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and needle in lines[0], lines
+    assert not out.exists()
