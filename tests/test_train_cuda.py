@@ -1,6 +1,7 @@
-"""The learner on a GPU (``--device cuda``): PPO's update and DAgger's regression on CUDA learn
-what they learn on the CPU, from the same frames, and write CPU checkpoints. Skipped without
-CUDA (CI has none); run on a GPU host with ``pytest tests/test_train_cuda.py``."""
+"""The learner on a GPU (``--device cuda``): PPO's update (``--overlap``'s too) and DAgger's
+regression on CUDA learn what they learn on the CPU, from the same frames, and write CPU
+checkpoints. Skipped without CUDA (CI has none); run on a GPU host with
+``pytest tests/test_train_cuda.py``."""
 
 from __future__ import annotations
 
@@ -19,6 +20,11 @@ PPO_ONE_UPDATE = ("train", "--task", "forward", "--algo", "ppo", "--timesteps", 
                   "--num-minibatches", "2", "--seed", "5", "--no-progress")
 """One rollout, sampled by the env worker's onnxruntime copy from its own seeded generator
 (the same actions whichever device the learner is on), and one update."""
+PPO_OVERLAPPED = (*PPO_ONE_UPDATE[:PPO_ONE_UPDATE.index("--timesteps") + 1], "128",
+                  *PPO_ONE_UPDATE[PPO_ONE_UPDATE.index("--timesteps") + 2:], "--overlap")
+"""Two rollouts with ``--overlap``: the second collected with the first weights during the
+first update (the same actions on either device), the second update from the learner's view
+of it (log-probabilities and values recomputed on the learner's device)."""
 DAGGER_ONE_ITERATION = ("train", "--task", "seek", "--algo", "dagger", "--iterations", "1",
                         "--steps-per-iteration", "40", "--train-samples", "256",
                         "--num-envs", "1", "--seed", "5", "--no-progress")
@@ -63,9 +69,10 @@ def _same_learning(cpu: dict[str, torch.Tensor], cuda: dict[str, torch.Tensor],
         assert cosine > 0.95 and 0.9 < ratio < 1.1, (name, cosine, ratio)
 
 
-def test_ppo_update_on_cuda_learns_what_the_cpu_learns(tmp_path, capsys):
-    cpu = _trained(capsys, tmp_path / "cpu" / "run", PPO_ONE_UPDATE, "cpu")
-    cuda = _trained(capsys, tmp_path / "cuda" / "run", PPO_ONE_UPDATE, "cuda")
+@pytest.mark.parametrize("args", [PPO_ONE_UPDATE, PPO_OVERLAPPED], ids=["sync", "overlap"])
+def test_ppo_update_on_cuda_learns_what_the_cpu_learns(tmp_path, capsys, args):
+    cpu = _trained(capsys, tmp_path / "cpu" / "run", args, "cpu")
+    cuda = _trained(capsys, tmp_path / "cuda" / "run", args, "cuda")
     start = _initial(5, "forward", "ppo")
     assert cpu.keys() == cuda.keys() == start.keys()
     _same_learning(cpu, cuda, start, ("mu_head.weight", "value_head.weight", "encoder.0.weight"))
