@@ -4,13 +4,14 @@
 
 The learner's process CPU time (all its threads) is split into rollout inference (the
 network's forward pass without gradients), the vector env's ``step`` -- or, when the workers
-sample (``sample_in_workers``), its ``call("collect")`` -- as the learner sees it (sending
-actions or weights, receiving results, merging infos, the reward normaliser: CPU only,
-waiting for the workers is not CPU), the update (between ``train()``'s two ``torch.set_num_threads``
-calls: GAE, the epochs, the optimizer) and the rest of the loop (buffers, bookkeeping). The
-env workers' CPU comes from /proc. Every figure is for the timed loop (from the first env
-step to the last update), scaled to ``--steps``; wall time besides. On a shared machine the
-CPU seconds are what to compare; the wall seconds depend on the load (reported).
+sample (``sample_in_workers``), its ``call_async("collect")`` and ``call_wait()`` -- as the
+learner sees it (sending actions or weights, receiving results, merging infos, the reward
+normaliser: CPU only, waiting for the workers is not CPU), the update (between ``train()``'s
+two ``torch.set_num_threads`` calls: GAE, the epochs, the optimizer) and the rest of the
+loop (buffers, bookkeeping). The env workers' CPU comes from /proc. Every figure is for the
+timed loop (from the first env step to the last update), scaled to ``--steps``; wall time
+besides. On a shared machine the CPU seconds are what to compare; the wall seconds depend on
+the load (reported).
 Writes benchmarks/results/profile_ppo[-TAG].json.
 """
 
@@ -64,7 +65,9 @@ class Meter:
 
         from jetbot_rt.train.model import ActorCritic
 
-        meter, heads, step, call = self, ActorCritic.heads, ClipReward.step, AsyncVectorEnv.call
+        meter, heads, step = self, ActorCritic.heads, ClipReward.step
+        call_async, call_wait = AsyncVectorEnv.call_async, AsyncVectorEnv.call_wait
+        collecting = [False]
         set_threads = torch.set_num_threads
 
         def begin(env: object) -> None:
@@ -88,13 +91,24 @@ class Meter:
             meter.cpu["env_step"] += time.process_time() - c
             return out
 
-        def timed_call(env, name, *args, **kwargs):  # type: ignore[no-untyped-def]
+        # the trainer sends "collect" with call_async and takes the rollout with call_wait
+        def timed_call_async(env, name, *args, **kwargs):  # type: ignore[no-untyped-def]
             if name != "collect":
-                return call(env, name, *args, **kwargs)
+                return call_async(env, name, *args, **kwargs)
             begin(env)
             c = time.process_time()
-            out = call(env, name, *args, **kwargs)
+            out = call_async(env, name, *args, **kwargs)
             meter.cpu["env_step"] += time.process_time() - c
+            collecting[0] = True
+            return out
+
+        def timed_call_wait(env, *args, **kwargs):  # type: ignore[no-untyped-def]
+            if not collecting[0]:
+                return call_wait(env, *args, **kwargs)
+            c = time.process_time()
+            out = call_wait(env, *args, **kwargs)
+            meter.cpu["env_step"] += time.process_time() - c
+            collecting[0] = False
             return out
 
         def timed_threads(n: int) -> None:
@@ -111,7 +125,8 @@ class Meter:
 
         ActorCritic.heads = timed_heads  # type: ignore[method-assign]
         ClipReward.step = timed_step  # type: ignore[method-assign]
-        AsyncVectorEnv.call = timed_call  # type: ignore[method-assign]
+        AsyncVectorEnv.call_async = timed_call_async  # type: ignore[method-assign]
+        AsyncVectorEnv.call_wait = timed_call_wait  # type: ignore[method-assign]
         torch.set_num_threads = timed_threads
 
     def report(self, steps_done: int, steps: int) -> dict:
