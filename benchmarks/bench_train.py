@@ -189,7 +189,11 @@ def main() -> None:
     name = f"train-{args.tag}" if args.tag else "train"
     previous = RESULTS / f"{name}.json"
     if previous.exists():
-        result = {**json.loads(previous.read_text()), **result}
+        before = json.loads(previous.read_text())
+        for key in ("bundled_training", "eval"):  # kept from an earlier run unless re-measured:
+            if isinstance(before.get(key), dict):  # they keep that run's versions (None: unknown)
+                before[key].setdefault("versions", before.get("versions"))
+        result = {**before, **result}
         if isinstance(result.get("throughput"), dict):  # one run of the format before issue 10
             del result["throughput"]
     if args.throughput_steps > 0:
@@ -200,7 +204,7 @@ def main() -> None:
         ]
         result["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     if args.train_run is not None:
-        result["bundled_training"] = read_training_run(args.train_run)
+        result["bundled_training"] = stamp(read_training_run(args.train_run))
         if args.command_wall_s is not None:
             result["bundled_training"]["command_wall_s"] = args.command_wall_s
         result["bundled_command"] = args.command or result.get("bundled_command", "")
