@@ -6,7 +6,10 @@ arguments is run as written.
 
 Knobs (``with_knobs``): the only changes a journey makes to a command, each to a text that must
 be in it: fewer steps, episodes or seconds where the doc's command has such a flag, a
-temporary path for a fixed one (``/tmp/chip.json``, ``/mnt/jetbot``).
+temporary path for a fixed one (``/tmp/chip.json``, ``/mnt/jetbot``, ``/etc/jetbot-rt/config.toml``;
+the robot's installed ``sudo /opt/jetbot-rt/bin/jetbot-rt`` as this checkout's ``jetbot-rt``
+where the emulated board stands in for the robot's), port 0 (any free one) for a fixed port, and
+the seed a doc's comment gives a repeated command (``world_N.toml``).
 """
 
 from __future__ import annotations
@@ -53,6 +56,25 @@ JOURNEYS: dict[str, list[tuple[str, str]]] = {
         ("docs/ROBOT.md", "jetbot-rt install-service --root /mnt/jetbot"),
         ("docs/ROBOT.md", "systemd-sysusers --root=/mnt/jetbot"),
         ("docs/ROBOT.md", "systemd-analyze --root=/mnt/jetbot verify"),
+    ],
+    "calibrate the drive in the simulator (docs/CALIBRATION.md)": [
+        ("docs/CALIBRATION.md", "jetbot-rt calibrate --backend sim --config TRUTH.toml --yes"),
+    ],
+    "calibrate the lens in the simulator (docs/CALIBRATION.md)": [
+        ("docs/CALIBRATION.md", "jetbot-rt calibrate --camera --backend sim --config TRUTH.toml"),
+    ],
+    "drive, take over, fine-tune, evaluate in the simulator (docs/DRIVE.md)": [
+        ("docs/DRIVE.md", "jetbot-rt drive --backend sim --input scripted --config world_1.toml"),
+        ("docs/DRIVE.md", "jetbot-rt drive --backend sim --input scripted --config world_4.toml"),
+        ("docs/DRIVE.md", "jetbot-train finetune --recordings hand_4 hand_5 hand_6 takeover_1"),
+        ("docs/DRIVE.md", "jetbot-train eval --task seek --episodes 100 --num-envs 2 --seed 10000 "
+                          "--json --policy ft_mix/policy.onnx --config"),
+    ],
+    "watch the policy on the emulated board's live page (docs/REAL_DATA.md)": [
+        ("docs/REAL_DATA.md", "sudo /opt/jetbot-rt/bin/jetbot-rt run --backend real --config "
+                              "/etc/jetbot-rt/config.toml --board-emulator /tmp/chip.json "
+                              "--monitor 8080"),
+        ("docs/HARDWARE.md", "python -c \"from jetbot_rt.testing.pca9685_emulator import"),
     ],
     "your own task (docs/TASKS.md)": [
         ("docs/TASKS.md", "jetbot-train train --task examples/tasks/my_task.py:ParkAtBlueWall"),
@@ -131,12 +153,28 @@ def command(doc: str, start: str) -> str:
                          f"runs it: tests/journeys/doc_commands.py); found in: {elsewhere}")
 
 
-def python_block(doc: str, containing: str) -> str:
-    """The one Python block of ``doc`` that contains ``containing``."""
-    matches = ["\n".join(lines) + "\n" for lang, lines in blocks(doc)
-               if lang == "python" and any(containing in line for line in lines)]
-    assert len(matches) == 1, f"{doc}: {len(matches)} python blocks contain {containing!r}"
+TOML_BLOCKS: dict[str, list[tuple[str, str]]] = {
+    "calibrate the drive in the simulator (docs/CALIBRATION.md)": [
+        ("docs/CALIBRATION.md", "motor_gain = 19.853"),
+    ],
+    "calibrate the lens in the simulator (docs/CALIBRATION.md)": [
+        ("docs/CALIBRATION.md", "lens_focal = 1.02024"),
+    ],
+}
+"""The TOML the docs show: a journey writes the block as a file (``toml_block``)."""
+
+
+def python_block(doc: str, containing: str, lang: str = "python") -> str:
+    """The one Python (or ``lang``) block of ``doc`` that contains ``containing``."""
+    matches = ["\n".join(lines) + "\n" for found, lines in blocks(doc)
+               if found == lang and any(containing in line for line in lines)]
+    assert len(matches) == 1, f"{doc}: {len(matches)} {lang} blocks contain {containing!r}"
     return matches[0]
+
+
+def toml_block(doc: str, containing: str) -> str:
+    """The one TOML block of ``doc`` that contains ``containing``."""
+    return python_block(doc, containing, lang="toml")
 
 
 INLINE: dict[str, list[tuple[str, str]]] = {
@@ -152,6 +190,19 @@ INLINE: dict[str, list[tuple[str, str]]] = {
     ],
     "the robot on the emulated board (docs/HARDWARE.md)": [
         ("docs/HARDWARE.md", '[camera] source = "gst:videotestsrc is-live=true"'),
+    ],
+    "drive, take over, fine-tune, evaluate in the simulator (docs/DRIVE.md)": [
+        ("docs/DRIVE.md", "3 drives of 200 s (seeds 1-3), then hand drives of 110 s (4-6)"),
+        ("docs/DRIVE.md", "(`world_N.toml` is `hidden_world.toml` with `seed = N` under "
+                          "`[sim]`.)"),
+    ],
+    "watch the policy on the emulated board's live page (docs/REAL_DATA.md)": [
+        ("docs/REAL_DATA.md", 'Set `[policy] path = "/etc/jetbot-rt/policy.onnx"` in '
+                              "`/etc/jetbot-rt/config.toml`"),
+        ("docs/HARDWARE.md", '[camera] source = "gst:videotestsrc is-live=true"'),
+        ("docs/MONITOR.md", "| `POST /stop` | latches the safe stop as `jetbot-rt stop` does; "
+                            "the run ends orderly (exit 0, `stopped stop from the monitor page "
+                            "(ADDR)`) |"),
     ],
 }
 """Commands and settings the docs give in running text: ``text`` must be in the doc (line

@@ -15,11 +15,13 @@ from doc_commands import (
     INLINE,
     JOURNEYS,
     PYTHON_BLOCKS,
+    TOML_BLOCKS,
     command,
     inline,
     ok,
     python_block,
     sh,
+    toml_block,
     with_knobs,
 )
 
@@ -37,6 +39,9 @@ def test_every_journeys_commands_are_still_in_their_docs() -> None:
     for blocks in PYTHON_BLOCKS.values():
         for doc, containing in blocks:
             python_block(doc, containing)
+    for blocks in TOML_BLOCKS.values():
+        for doc, containing in blocks:
+            toml_block(doc, containing)
     for texts in INLINE.values():
         for doc, text in texts:
             inline(doc, text)
