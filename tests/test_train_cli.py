@@ -205,6 +205,8 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
         (["eval", "--ablate", "sepia", "--episodes", "1"], "invalid choice"),
         (["eval", "--policy", str(a_file), "--episodes", "1"], "not a loadable ONNX model"),
         (["eval", "--episodes", "0"], "--episodes"),
+        (["train", "--algo", "dagger", "--task", "avoid", "--turn-weight", "-1", "--out",
+          str(tmp_path / "x")], "--turn-weight must be >= 0, got -1"),
     ]
     # Each case in this process (an interpreter and torch start per case cost ~3-6 s each);
     # two of them, one refused by the parser and one by the command, through the console
@@ -279,13 +281,14 @@ def test_without_the_train_extra_one_line_names_it():
     assert "torch" in result.stderr
 
 
-def test_ctrl_c_saves_a_checkpoint_and_prints_the_resume_command(tmp_path):
+@pytest.mark.parametrize("overlap", [(), ("--overlap",)], ids=["sync", "overlap"])
+def test_ctrl_c_saves_a_checkpoint_and_prints_the_resume_command(tmp_path, overlap):
     """With ``--overlap``: from the first update on the next rollout is in flight whenever
     Ctrl-C comes (in the update or waiting for it), and the workers are ended all the same."""
     out = tmp_path / "run"
     args = ["train", "--task", "seek", "--algo", "ppo", "--timesteps", "100000",
             "--num-envs", "1", "--num-steps", "16", "--update-epochs", "1", "--out", str(out),
-            "--no-progress", "--overlap"]
+            "--no-progress", *overlap]
     # a shell's background job inherits SIGINT ignored; a user's terminal delivers it
     proc = subprocess.Popen([JETBOT_TRAIN, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True,

@@ -614,6 +614,9 @@ class DAggerArgs(CurriculumOptions):
                                          f"{self.workers}")
         if self.snapshots < 0:
             raise OptionError("snapshots", f"must be >= 0, got {self.snapshots}")
+        for name in ("stop_weight", "turn_weight"):  # a negative one trains away from them
+            if getattr(self, name) < 0:
+                raise OptionError(name, f"must be >= 0, got {getattr(self, name):g}")
         if self.expert_sees not in EXPERT_SEES:
             raise OptionError("expert_sees", f"must be one of {', '.join(EXPERT_SEES)}, got "
                                              f"{value_text(self.expert_sees)}")

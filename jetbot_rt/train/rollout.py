@@ -185,6 +185,8 @@ class WorkerRollouts(RolloutSource):
     in_flight: int | None = None
     """The update whose rollout the workers are collecting with older weights (prefetched),
     if any."""
+    waiting: bool = False
+    """A call to the workers is sent and its answer not yet read."""
     behaviour_logprobs: torch.Tensor | None = None
 
     def _send(self, model: ActorCritic, update: int) -> None:
@@ -193,6 +195,7 @@ class WorkerRollouts(RolloutSource):
         # dies on Ctrl-C mid-handover. call_async pickles them now: the update may change
         # the model's tensors in place the moment it returns.
         weights = {name: w.numpy() for name, w in to_cpu(model.actor_state_dict()).items()}
+        self.waiting = True
         self.envs.unwrapped.call_async("collect", weights, self.options.num_steps,
                                        (self.options.seed, update))
 
@@ -202,8 +205,9 @@ class WorkerRollouts(RolloutSource):
             self._send(model, update)
         elif self.in_flight != update:
             raise RuntimeError(f"rollout {self.in_flight} is in flight, not {update}")
-        lagged, self.in_flight = self.in_flight is not None, None
+        lagged = self.in_flight is not None
         segment = stack_segments(self.envs.unwrapped.call_wait())
+        self.waiting, self.in_flight = False, None
         if prefetch:
             self._send(model, update + 1)
             self.in_flight = update + 1
@@ -246,9 +250,10 @@ class WorkerRollouts(RolloutSource):
         return self.behaviour_logprobs
 
     def close(self, interrupted: bool) -> None:
-        # a prefetched rollout still in flight (an error in the update): gymnasium's close
-        # would wait for it; end the workers instead, as after Ctrl-C
-        close_vector_env(self.envs, interrupted or self.in_flight is not None)
+        # a call still unanswered (an error in the update with a rollout prefetched, a worker
+        # lost mid-rollout): gymnasium's close would wait for it, or read a dead pipe again
+        # and hide the first error; end the workers instead, as after Ctrl-C
+        close_vector_env(self.envs, interrupted or self.waiting)
 
     def _critic_values(self, model: ActorCritic, segment: dict[str, Any]) -> None:
         """Fill ``states``, ``values`` and ``next_state`` from the segment's states and set its
