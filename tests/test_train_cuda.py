@@ -20,8 +20,9 @@ PPO_ONE_UPDATE = ("train", "--task", "forward", "--algo", "ppo", "--timesteps", 
                   "--num-minibatches", "2", "--seed", "5", "--no-progress")
 """One rollout, sampled by the env worker's onnxruntime copy from its own seeded generator
 (the same actions whichever device the learner is on), and one update."""
-PPO_OVERLAPPED = (*PPO_ONE_UPDATE[:PPO_ONE_UPDATE.index("--timesteps") + 1], "128",
-                  *PPO_ONE_UPDATE[PPO_ONE_UPDATE.index("--timesteps") + 2:], "--overlap")
+PPO_OVERLAPPED = ("train", "--task", "forward", "--algo", "ppo", "--timesteps", "128",
+                  "--num-steps", "64", "--num-envs", "1", "--update-epochs", "2",
+                  "--num-minibatches", "2", "--seed", "5", "--no-progress", "--overlap")
 """Two rollouts with ``--overlap``: the second collected with the first weights during the
 first update (the same actions on either device), the second update from the learner's view
 of it (log-probabilities and values recomputed on the learner's device)."""
