@@ -30,6 +30,7 @@ from jetbot_rt.train.expert import task_expert
 from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig
 from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.run_dir import Interrupted, Panel, Progress, RunDirectory, starting_model
+from jetbot_rt.train.run_end import close_workers, interrupt_noted
 from jetbot_rt.train.vec_env import EnvSpec, close_vector_env, make_vector_env
 from jetbot_rt.train.wrappers import Shaping
 
@@ -281,11 +282,13 @@ def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
     finally:
         bar.close()
         if run.envs is not None:
-            close_vector_env(run.envs, interrupted)
-    run.run.export_policy(run.model.eval(), options.task, run.max_speed)
-    run.run.plot_curve("jetbot-train DAgger learning curve", curve(CURVE, run.schedule))
+            envs = run.envs
+            interrupted = close_workers(lambda now: close_vector_env(envs, now), interrupted)
+    with interrupt_noted() as noted:
+        run.run.export_policy(run.model.eval(), options.task, run.max_speed)
+        run.run.plot_curve("jetbot-train DAgger learning curve", curve(CURVE, run.schedule))
     wall = progress.wall_s()
     summary = run.run.summary(progress, round(progress.global_step / max(wall, 1e-9), 1))
-    if interrupted:
+    if interrupted or noted():
         raise Interrupted(summary)
     return summary

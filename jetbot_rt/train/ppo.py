@@ -35,6 +35,7 @@ from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.ray_workers import WorkersLost
 from jetbot_rt.train.rollout import Rollout, RolloutSource, make_rollout_source
 from jetbot_rt.train.run_dir import Interrupted, Panel, Progress, RunDirectory, starting_model
+from jetbot_rt.train.run_end import close_workers, interrupt_noted
 
 METRIC_FIELDS = (
     "update", "global_step", "wall_s", "steps_per_s", "episodes", "mean_return",
@@ -310,11 +311,12 @@ def _train(run: _Run, options: PPOArgs) -> dict[str, Any]:
             run.save()
     finally:
         bar.close()
-        run.close(interrupted)
+        interrupted = close_workers(run.close, interrupted)
     if lost is not None and progress.update == first_update:
         raise lost  # nothing learned: an earlier checkpoint stays as it was
-    summary = run.finish()
-    if interrupted:
+    with interrupt_noted() as noted:
+        summary = run.finish()
+    if interrupted or noted():
         raise Interrupted(summary)
     if lost is not None:
         lost.summary = summary

@@ -115,5 +115,6 @@ def close_vector_env(envs: Any, interrupted: bool) -> None:
     for process in vector.processes:
         process.join()
     for pipe in vector.parent_pipes:
-        pipe.close()
+        if pipe is not None:  # gymnasium drops a failed worker's
+            pipe.close()
     vector.closed = True  # its __del__ would try again

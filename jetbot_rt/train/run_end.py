@@ -1,0 +1,56 @@
+"""The end of a training run: the env workers closed, then the policy and the curve written,
+whenever Ctrl-C comes.
+
+A Ctrl-C after the last update (``timeout -s INT`` a moment after the run finished, a user
+pressing it as the bar reaches 100 %) used to land in the workers' close or in the export:
+the run ended with exit 130, a checkpoint of every update and no ``policy.onnx``, the
+interrupt message never printed (seen on the H200 host, 2026-11-28). Here a Ctrl-C while a
+clean close waits on the workers ends them instead, and one while the last files are written
+is noted and acted on once they are: the run ends as a Ctrl-C does, with the policy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+
+def close_workers(close: Callable[[bool], None], interrupted: bool) -> bool:
+    """``close(interrupted)``; a Ctrl-C while it waits on the workers ends them instead
+    (``close(True)``). Whether the run was interrupted."""
+    try:
+        close(interrupted)
+    except KeyboardInterrupt:
+        if interrupted:
+            raise  # a second Ctrl-C while the workers are being ended: give up on them
+        close(True)
+        return True
+    return interrupted
+
+
+@contextlib.contextmanager
+def interrupt_noted() -> Iterator[Callable[[], bool]]:
+    """A Ctrl-C inside is noted, not raised (the yielded function tells whether one came); a
+    second raises as usual, so a write that hangs can still be left. Where Ctrl-C is not
+    Python's KeyboardInterrupt (ignored in a background job, another handler, not the main
+    thread) nothing changes."""
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGINT) if main else None
+    if previous is not signal.default_int_handler:
+        yield lambda: False
+        return
+    received: list[Any] = []
+
+    def note(signum: int, frame: Any) -> None:
+        if received:
+            raise KeyboardInterrupt
+        received.append(signum)
+
+    signal.signal(signal.SIGINT, note)
+    try:
+        yield lambda: bool(received)
+    finally:
+        signal.signal(signal.SIGINT, previous)

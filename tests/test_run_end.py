@@ -1,0 +1,84 @@
+"""Ctrl-C at the end of a training run: in the workers' clean close it ends them instead, in
+the export it is acted on after the policy is written; either way the run ends as a Ctrl-C
+does (``Interrupted``: exit 130 and the resume command), with ``policy.onnx``."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+
+import pytest
+
+from jetbot_rt.train.run_end import interrupt_noted
+
+pytest.importorskip("pybullet")
+
+
+def _ctrl_c() -> None:
+    os.kill(os.getpid(), signal.SIGINT)
+
+
+def test_ctrl_c_in_the_export_is_acted_on_after_the_policy_is_written(tmp_path, monkeypatch):
+    from jetbot_rt.train import dagger
+    from jetbot_rt.train.hyperparams import dagger_args
+    from jetbot_rt.train.run_dir import Interrupted, RunDirectory
+
+    export = RunDirectory.export_policy
+
+    def interrupted_export(self, *args, **kwargs):
+        _ctrl_c()
+        return export(self, *args, **kwargs)
+
+    monkeypatch.setattr(RunDirectory, "export_policy", interrupted_export)
+    args = dagger_args("seek", {"iterations": 1, "steps_per_iteration": 10,
+                                "train_samples": 32, "num_envs": 1, "workers": 0,
+                                "out": str(tmp_path), "progress": False})
+    with pytest.raises(Interrupted) as stop:
+        dagger.train(args)
+    assert stop.value.summary["updates"] == 1
+    assert (tmp_path / "policy.onnx").stat().st_size > 0
+    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+
+
+def test_ctrl_c_while_a_clean_close_waits_on_the_workers_ends_them(tmp_path, monkeypatch):
+    from jetbot_rt.train import ppo, rollout
+    from jetbot_rt.train.hyperparams import PPOArgs
+    from jetbot_rt.train.run_dir import Interrupted
+
+    close = rollout.close_vector_env
+    closes = []
+
+    def interrupted_close(envs, interrupted):
+        closes.append(interrupted)
+        if not interrupted:
+            raise KeyboardInterrupt  # as if it came while gymnasium waits on the workers
+        close(envs, interrupted)
+
+    monkeypatch.setattr(rollout, "close_vector_env", interrupted_close)
+    args = PPOArgs(num_envs=1, num_steps=16, total_timesteps=16, update_epochs=1,
+                   out=str(tmp_path), progress=False)
+    with pytest.raises(Interrupted):
+        ppo.train(args)
+    assert closes == [False, True]
+    assert multiprocessing.active_children() == []
+    assert (tmp_path / "policy.onnx").stat().st_size > 0
+
+
+def test_a_second_ctrl_c_while_the_files_are_written_raises():
+    with pytest.raises(KeyboardInterrupt), interrupt_noted() as noted:
+        _ctrl_c()
+        assert noted()
+        _ctrl_c()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_where_ctrl_c_is_ignored_it_stays_ignored():
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a shell's background job
+    try:
+        with interrupt_noted() as noted:
+            _ctrl_c()
+        assert not noted()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
