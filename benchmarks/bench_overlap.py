@@ -1,15 +1,19 @@
 """PPO end to end against the simulator alone, in the same run (issue 21, target 1): for each
 task, the env steps/s of N processes stepping the task's env with random commands
-(``bench_sim.bench_env``), then ``jetbot-train``'s PPO with N envs, synchronous and with
-``--overlap`` (the workers collect the next rollout while the learner updates), rounds
-interleaved so that a drift of the machine touches both alike.
+(``bench_sim.bench_env``), then ``jetbot-train``'s PPO with N envs in three arms: synchronous,
+``--overlap`` with one barrier a rollout (every worker given its next rollout when the last
+one has answered: the code of 38dce43..054ebc4, ``WorkerRollouts.pipelined`` off) and
+``--overlap`` as it is (each worker given its next rollout the moment it answers), rounds
+interleaved so that a drift of the machine touches every arm alike.
 
     python benchmarks/bench_overlap.py --num-envs 16 --device cuda --tag h200-16
 
 Writes overlap[-TAG].json and .md to --out. Each PPO run is the task's default recipe
 (``ppo_args``) for ``--steps`` env steps; its figure is the training loop's env steps/s
 (``steps_per_s`` of the last metrics row: from the first rollout's start, worker start-up and
-export left out, as the simulator's figure leaves out its start-up).
+export left out, as the simulator's figure leaves out its start-up). Each overlapped run
+also gives the median time from the first worker's answer read to the last's, per rollout
+(``spread_ms``: what the barrier keeps the first workers waiting).
 """
 
 from __future__ import annotations
@@ -27,18 +31,38 @@ import torch  # noqa: F401 - before pybullet (bench_sim): the other order segfau
 from bench_sim import PATHS, bench_env, machine
 from versions import stamp
 
+ARMS = {"sync": (False, False), "barrier": (True, False), "overlap": (True, True)}
+"""Each arm's (``--overlap``, ``WorkerRollouts.pipelined``)."""
 
-def ppo_steps_per_s(task: str, num_envs: int, steps: int, overlap: bool, device: str) -> dict:
+
+def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str) -> dict:
+    from jetbot_rt.train import rollout
     from jetbot_rt.train.hyperparams import ppo_args
     from jetbot_rt.train.ppo import train
+
+    overlap, pipelined = ARMS[arm]
+    spreads: list[float] = []
+    gather = rollout.WorkerCalls.gather
+
+    def timed(calls, *a, **k):
+        answers = gather(calls, *a, **k)
+        spreads.append(calls.spreads[-1])
+        return answers
 
     with tempfile.TemporaryDirectory() as out:
         args = ppo_args(task, {"total_timesteps": steps, "num_envs": num_envs, "out": out,
                                "progress": False, "overlap": overlap, "device": device})
+        rollout.WorkerRollouts.pipelined = pipelined
+        rollout.WorkerCalls.gather = timed
         start = time.perf_counter()
-        summary = train(args)
+        try:
+            summary = train(args)
+        finally:
+            rollout.WorkerRollouts.pipelined = True
+            rollout.WorkerCalls.gather = gather
         wall = time.perf_counter() - start
-    return {"overlap": overlap, "timesteps": summary["global_step"],
+    spread = round(1000 * statistics.median(spreads), 1) if spreads else None
+    return {"arm": arm, "timesteps": summary["global_step"], "spread_ms": spread,
             "steps_per_s": summary["steps_per_s"], "wall_s_with_startup": round(wall, 1),
             "update_epochs": args.update_epochs, "num_minibatches": args.num_minibatches,
             "num_steps": args.num_steps}
@@ -53,18 +77,27 @@ def markdown(result: dict) -> str:
         f"{m['loadavg_1min_at_end']} at the end. Command: `{result['command']}`.", "",
         f"{result['num_envs']} env processes. Simulator alone: `JetbotEnv.step` with random "
         f"commands, {result['env_steps']} steps a process. PPO: the task's default recipe, "
-        f"{result['steps']} env steps a run, {result['rounds']} rounds (sync, overlap "
-        "interleaved); the median and every run in brackets.", "",
-        "| task | simulator alone | PPO sync | PPO --overlap | sync / sim | overlap / sim "
-        "| overlap / sync |", "| --- | --- | --- | --- | --- | --- | --- |",
+        f"{result['steps']} env steps a run, {result['rounds']} rounds (the arms "
+        "interleaved: synchronous, --overlap with one barrier a rollout, --overlap now); "
+        "env steps/s, the median and every run in brackets, then the share of the "
+        "simulator alone; the spread is the median time from a rollout's first worker "
+        "answer read to its last.", "",
+        "| task | simulator alone | PPO sync | --overlap, one barrier | --overlap now "
+        "| spread, barrier / now (ms) | now / barrier |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
+
+    def cell(arm: dict, total: float) -> str:
+        runs = ", ".join(map(str, arm["runs"]))
+        return f"{arm['median']} ({runs}), {arm['median'] / total:.1%}"
+
     for row in result["tasks"]:
-        sync, over = row["sync"], row["overlap"]
+        total = row["sim"]["steps_per_s_total"]
+        spreads = [row[arm]["spread_ms"] for arm in ("barrier", "overlap")]
         lines.append(
-            f"| {row['task']} | {row['sim']['steps_per_s_total']} | {sync['median']} "
-            f"({', '.join(map(str, sync['runs']))}) | {over['median']} "
-            f"({', '.join(map(str, over['runs']))}) | {row['sync_over_sim']:.0%} | "
-            f"{row['overlap_over_sim']:.0%} | x{row['overlap_over_sync']} |")
+            f"| {row['task']} | {total} | {cell(row['sync'], total)} | "
+            f"{cell(row['barrier'], total)} | {cell(row['overlap'], total)} | "
+            f"{spreads[0]} / {spreads[1]} | x{row['overlap_over_barrier']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -86,21 +119,25 @@ def main() -> None:
                     "tasks": []}
     for task in args.tasks:
         sim = bench_env({**PATHS["train"], "task": task}, args.num_envs, args.env_steps)
-        runs: dict[bool, list[dict]] = {False: [], True: []}
+        runs: dict[str, list[dict]] = {arm: [] for arm in ARMS}
         for _ in range(args.rounds):
-            for overlap in (False, True):
-                run = ppo_steps_per_s(task, args.num_envs, args.steps, overlap, args.device)
-                runs[overlap].append(run)
+            for arm in ARMS:
+                run = ppo_steps_per_s(task, args.num_envs, args.steps, arm, args.device)
+                runs[arm].append(run)
                 print(task, run, flush=True)
         row = {"task": task, "sim": sim}
-        for overlap, key in ((False, "sync"), (True, "overlap")):
-            rates = [r["steps_per_s"] for r in runs[overlap]]
-            row[key] = {"median": statistics.median(rates), "runs": rates,
-                        "detail": runs[overlap]}
+        for arm in ARMS:
+            rates = [r["steps_per_s"] for r in runs[arm]]
+            spreads = [r["spread_ms"] for r in runs[arm] if r["spread_ms"] is not None]
+            row[arm] = {"median": statistics.median(rates), "runs": rates,
+                        "spread_ms": statistics.median(spreads) if spreads else None,
+                        "detail": runs[arm]}
         total = sim["steps_per_s_total"]
-        row["sync_over_sim"] = round(row["sync"]["median"] / total, 3)
-        row["overlap_over_sim"] = round(row["overlap"]["median"] / total, 3)
+        for arm in ARMS:
+            row[f"{arm}_over_sim"] = round(row[arm]["median"] / total, 3)
         row["overlap_over_sync"] = round(row["overlap"]["median"] / row["sync"]["median"], 2)
+        row["overlap_over_barrier"] = round(
+            row["overlap"]["median"] / row["barrier"]["median"], 3)
         result["tasks"].append(row)
         print(task, "sim", sim["steps_per_s_total"], flush=True)
     result["machine"]["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)

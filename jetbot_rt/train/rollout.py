@@ -21,8 +21,9 @@ task's privileged state in their info (``wrappers.CriticState``) and the rollout
 beside each frame (``Rollout.states``): every value -- of a step, of a truncated episode's
 final observation, of the next rollout's first -- is the critic's of that state.
 
-With ``overlap`` (PPO's ``--overlap``) ``WorkerRollouts`` sends the workers the next rollout's
-call before the learner updates on this one, so the workers step while the learner learns. That
+With ``overlap`` (PPO's ``--overlap``) ``WorkerRollouts`` sends each worker the next rollout's
+call as soon as its part of this one arrives (``worker_calls``), before the learner updates on
+this one, so the workers step while the learner learns. That
 rollout was collected with the weights of one update before: the learner recomputes its
 log-probabilities and values with its own weights (``Rollout.logprobs``, ``values``) and keeps
 the collecting weights' (``Rollout.behaviour_logprobs``) for ``ppo.ppo_update``'s importance
@@ -44,6 +45,7 @@ from jetbot_rt.train.hyperparams import PPOArgs
 from jetbot_rt.train.model import ActorCritic, normal_log_prob
 from jetbot_rt.train.sampler import PolicySampler, normalize_segment, stack_segments
 from jetbot_rt.train.vec_env import EPISODE_INFO, EnvSpec, close_vector_env, make_vector_env
+from jetbot_rt.train.worker_calls import WorkerCalls
 from jetbot_rt.train.wrappers import CRITIC_STATE, normalize_rewards
 
 
@@ -188,16 +190,51 @@ class WorkerRollouts(RolloutSource):
     waiting: bool = False
     """A call to the workers is sent and its answer not yet read."""
     behaviour_logprobs: torch.Tensor | None = None
+    calls: WorkerCalls | None = None
+    """The workers' pipes, with ``overlap`` (else gymnasium's calls)."""
+    pipelined = True
+    """With ``overlap``: each worker is sent its next rollout as soon as its last one arrives
+    (``worker_calls``) instead of when the last worker's has (one barrier a rollout)."""
 
-    def _send(self, model: ActorCritic, update: int) -> None:
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if self.options.overlap:
+            self.calls = WorkerCalls(self.envs.unwrapped)
+
+    def _call(self, model: ActorCritic, update: int) -> tuple[Any, ...]:
         # numpy, not tensors: torch pickles a tensor as a shared-memory file descriptor
         # handed over by a resource_sharer thread, which prints a traceback when a worker
-        # dies on Ctrl-C mid-handover. call_async pickles them now: the update may change
-        # the model's tensors in place the moment it returns.
+        # dies on Ctrl-C mid-handover. Each send pickles them then and there: they must all
+        # be sent before the update changes the model's tensors in place.
         weights = {name: w.numpy() for name, w in to_cpu(model.actor_state_dict()).items()}
+        return weights, self.options.num_steps, (self.options.seed, update)
+
+    def _send(self, model: ActorCritic, update: int) -> None:
         self.waiting = True
-        self.envs.unwrapped.call_async("collect", weights, self.options.num_steps,
-                                       (self.options.seed, update))
+        if self.calls is not None:
+            self.calls.send_all("collect", self._call(model, update))
+        else:
+            self.envs.unwrapped.call_async("collect", *self._call(model, update))
+
+    def _answers(self, model: ActorCritic, update: int, prefetch: bool) -> list[Any]:
+        """The workers' segments of rollout ``update``; with ``prefetch`` each worker is
+        sent rollout ``update + 1`` (the model's weights now)."""
+        if self.calls is None:
+            segments = list(self.envs.unwrapped.call_wait())
+            self.waiting = False
+            if prefetch:
+                self._send(model, update + 1)
+            return segments
+        call = self._call(model, update + 1) if prefetch else None
+        then = None
+        if call is not None and self.pipelined:
+            def then(index: int) -> None:
+                self.calls.send(index, "collect", call)  # type: ignore[union-attr]
+        segments = self.calls.gather(then)
+        if call is not None and not self.pipelined:
+            self.calls.send_all("collect", call)
+        self.waiting = bool(self.calls.pending)
+        return segments
 
     def collect(self, model: ActorCritic, update: int, prefetch: bool = False) -> Rollout:
         options, device = self.options, self.device
@@ -206,11 +243,8 @@ class WorkerRollouts(RolloutSource):
         elif self.in_flight != update:
             raise RuntimeError(f"rollout {self.in_flight} is in flight, not {update}")
         lagged = self.in_flight is not None
-        segment = stack_segments(self.envs.unwrapped.call_wait())
-        self.waiting, self.in_flight = False, None
-        if prefetch:
-            self._send(model, update + 1)
-            self.in_flight = update + 1
+        segment = stack_segments(self._answers(model, update, prefetch))
+        self.in_flight = update + 1 if prefetch else None
         frames = torch.from_numpy(segment["obs"]).to(device)
         self.obs[:] = model.preprocess(frames.flatten(0, 1)).reshape(self.obs.shape)
         for buf, key in ((self.actions, "actions"), (self.logprobs, "logprobs"),
