@@ -4,13 +4,16 @@ Runs ``jetbot-rt run --backend sim`` as a child process (the product as a user r
 samples its resident memory from /proc every few seconds, and reads its telemetry.
 
     python benchmarks/soak.py [--minutes 10] [--policy P] [--out benchmarks/results/soak.json]
+        [--beside "a command kept running beside it"]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -40,6 +43,9 @@ def main() -> None:
     parser.add_argument("--policy", help="ONNX policy (default: the bundled one)")
     parser.add_argument("--sample-every", type=float, default=5.0, help="seconds between RSS reads")
     parser.add_argument("--out", default=str(RESULTS / "soak.json"))
+    parser.add_argument("--beside", metavar="COMMAND",
+                        help="a shell command kept running beside the soak (started again "
+                             "when it ends, ended with it): the load of a loaded run")
     args = parser.parse_args()
 
     exe = shutil.which("jetbot-rt") or str(Path(sys.executable).parent / "jetbot-rt")
@@ -50,13 +56,26 @@ def main() -> None:
         if args.policy:
             cmd += ["--policy", args.policy]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        beside, starts = None, 0
         samples: list[tuple[float, float]] = []
+        loads: list[float] = []
         t0 = time.monotonic()
-        while proc.poll() is None:
-            value = rss_mib(proc.pid)
-            if value is not None:
-                samples.append((time.monotonic() - t0, value))
-            time.sleep(args.sample_every)
+        try:
+            while proc.poll() is None:
+                if args.beside and (beside is None or beside.poll() is not None):
+                    beside = subprocess.Popen(["sh", "-c", args.beside], start_new_session=True,
+                                              stdout=subprocess.DEVNULL,
+                                              stderr=subprocess.DEVNULL)
+                    starts += 1
+                value = rss_mib(proc.pid)
+                if value is not None:
+                    samples.append((time.monotonic() - t0, value))
+                loads.append(os.getloadavg()[0])
+                time.sleep(args.sample_every)
+        finally:
+            if beside is not None and beside.poll() is None:
+                os.killpg(beside.pid, signal.SIGKILL)
+                beside.wait()
         stdout, stderr = proc.communicate()
         records = [json.loads(line) for line in telemetry.read_text().splitlines()]
 
@@ -89,6 +108,9 @@ def main() -> None:
                     "growth_after_warmup": round(samples[-1][1] - warm[0], 1),
                     "slope_mib_per_hour": round(float(slope), 2)},
         "rss_samples": len(samples),
+        "beside": args.beside, "beside_starts": starts,
+        "loadavg_1min": {"median": round(float(np.median(loads)), 2),
+                         "max": round(max(loads), 2)},
         "stderr": stderr.strip()[-500:],
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
