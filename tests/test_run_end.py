@@ -15,6 +15,15 @@ from jetbot_rt.train.run_end import interrupt_noted
 pytest.importorskip("pybullet")
 
 
+@pytest.fixture(autouse=True)
+def python_ctrl_c():
+    """SIGINT as a terminal's Ctrl-C reaches Python (an earlier test in this worker may have
+    left another handler, which the signals sent here must not reach)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def _ctrl_c() -> None:
     os.kill(os.getpid(), signal.SIGINT)
 
