@@ -74,6 +74,31 @@ def test_ctrl_c_while_a_clean_close_waits_on_the_workers_ends_them(tmp_path, mon
     assert (tmp_path / "policy.onnx").stat().st_size > 0
 
 
+def test_a_worker_gone_by_the_end_of_a_finished_run_costs_no_policy(tmp_path, monkeypatch,
+                                                                      capsys):
+    """A worker killed after the last update (the OOM killer, a crash in its env's close):
+    gymnasium's clean close meets a broken pipe; the others are ended, the policy written."""
+    from jetbot_rt.train import ppo
+    from jetbot_rt.train.hyperparams import PPOArgs
+
+    save = ppo._Run.save
+
+    def save_then_lose_a_worker(self):
+        save(self)
+        if self.progress.global_step >= self.options.total_timesteps:
+            worker = self.source.envs.unwrapped.processes[0]
+            os.kill(worker.pid, signal.SIGKILL)
+            worker.join()
+
+    monkeypatch.setattr(ppo._Run, "save", save_then_lose_a_worker)
+    args = PPOArgs(num_envs=2, num_steps=16, total_timesteps=32, update_epochs=1,
+                   out=str(tmp_path), progress=False)
+    assert ppo.train(args)["global_step"] == 32
+    assert "an env worker was gone at the end" in capsys.readouterr().err
+    assert multiprocessing.active_children() == []
+    assert (tmp_path / "policy.onnx").stat().st_size > 0
+
+
 def test_a_second_ctrl_c_while_the_files_are_written_raises():
     with pytest.raises(KeyboardInterrupt), interrupt_noted() as noted:
         _ctrl_c()

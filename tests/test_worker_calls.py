@@ -85,3 +85,14 @@ def test_a_workers_error_is_raised_and_the_others_stay_pending(vector):
     with pytest.raises(ValueError, match="worker 0 failed"):
         calls.gather()
     assert calls.pending == {1}
+
+
+def test_the_error_raised_is_the_answering_workers_though_another_queued_first(vector):
+    """A worker queues its error, then answers; with two failing, the queue's first error can
+    be the other worker's."""
+    calls = WorkerCalls(vector)
+    vector.error_queue.put((1, ValueError, "worker 1 failed", "trace of 1"))
+    vector.error_queue.put((0, KeyError, "worker 0 failed", "trace of 0"))
+    with pytest.raises(KeyError, match="worker 0 failed"):
+        calls._raise(0)
+    assert vector.error_queue.empty()

@@ -280,10 +280,10 @@ def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
         interrupted = True
         run.save()
     finally:
-        bar.close()
         if run.envs is not None:
             envs = run.envs
             interrupted = close_workers(lambda now: close_vector_env(envs, now), interrupted)
+        bar.close()
     with interrupt_noted() as noted:
         run.run.export_policy(run.model.eval(), options.task, run.max_speed)
         run.run.plot_curve("jetbot-train DAgger learning curve", curve(CURVE, run.schedule))

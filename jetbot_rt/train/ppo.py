@@ -310,8 +310,8 @@ def _train(run: _Run, options: PPOArgs) -> dict[str, Any]:
         if progress.update > first_update:  # keep what this run learned, as Ctrl-C does
             run.save()
     finally:
-        bar.close()
         interrupted = close_workers(run.close, interrupted)
+        bar.close()
     if lost is not None and progress.update == first_update:
         raise lost  # nothing learned: an earlier checkpoint stays as it was
     with interrupt_noted() as noted:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -20,7 +21,8 @@ from typing import Any
 
 def close_workers(close: Callable[[bool], None], interrupted: bool) -> bool:
     """``close(interrupted)``; a Ctrl-C while it waits on the workers ends them instead
-    (``close(True)``). Whether the run was interrupted."""
+    (``close(True)``), and so does a worker gone by the end (a broken pipe: what it sent
+    before is in the run already). Whether the run was interrupted."""
     try:
         close(interrupted)
     except KeyboardInterrupt:
@@ -28,6 +30,12 @@ def close_workers(close: Callable[[bool], None], interrupted: bool) -> bool:
             raise  # a second Ctrl-C while the workers are being ended: give up on them
         close(True)
         return True
+    except (OSError, EOFError) as exc:
+        if interrupted:
+            raise
+        print(f"jetbot-train: an env worker was gone at the end ({exc or type(exc).__name__}); "
+              "the others were ended", file=sys.stderr)
+        close(True)
     return interrupted
 
 

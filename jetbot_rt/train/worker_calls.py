@@ -15,6 +15,7 @@ from collections.abc import Callable
 from multiprocessing.connection import wait
 from typing import Any
 
+from gymnasium import logger
 from gymnasium.vector import AsyncVectorEnv
 
 
@@ -39,7 +40,7 @@ class WorkerCalls:
 
     def gather(self, then: Callable[[int], None] | None = None) -> list[Any]:
         """Every pending call's answer, in worker order; ``then(index)`` runs as soon as
-        worker ``index`` has answered (before the others are read). A worker's error is
+        worker ``index`` has answered (before the others are read). The first error read is
         raised as gymnasium raises it, with the other calls left pending."""
         pipes = {self.vector.parent_pipes[index]: index for index in sorted(self.pending)}
         results: list[Any] = [None] * self.vector.num_envs
@@ -50,8 +51,7 @@ class WorkerCalls:
                 result, success = pipe.recv()  # type: ignore[union-attr]
                 self.pending.discard(index)
                 if not success:
-                    _, error_type, value, _ = self.vector.error_queue.get()
-                    raise error_type(value)
+                    self._raise(index)
                 results[index] = result
                 first = time.perf_counter() if first is None else first
                 if then is not None:
@@ -59,3 +59,13 @@ class WorkerCalls:
         if first is not None:
             self.spreads.append(time.perf_counter() - first)
         return results
+
+    def _raise(self, index: int) -> None:
+        """Worker ``index``'s error, as gymnasium raises it; every worker's traceback read on
+        the way logged. A worker queues its error before it answers, so it is there; other
+        workers' errors may be ahead of it."""
+        while True:
+            worker, error_type, value, trace = self.vector.error_queue.get(timeout=60)
+            logger.error(f"Received the following error from Worker-{worker}: {trace}")
+            if worker == index:
+                raise error_type(value)
