@@ -12,7 +12,6 @@ that comes and goes falls on all of them alike; medians over the rounds.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -21,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_sim import actions, env_steps_per_s, machine, stats_ms
-from versions import stamp
+from versions import write_results
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.sim.config import SimConfig
@@ -121,10 +120,7 @@ def main() -> None:
     warp = lens_warp(SimConfig(lens="fisheye"), (SIZE, SIZE))
     result["fisheye_render_size"] = "x".join(map(str, warp.render_size)) if warp else "-"
     result["machine"]["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "lens.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
-    (args.out / "lens.md").write_text(markdown(result))
-    print(markdown(result))
+    write_results(args.out, "lens", result, markdown(result))
 
 
 if __name__ == "__main__":

@@ -9,7 +9,6 @@ Writes lens_recovery.json and lens_recovery.md to --out.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import tempfile
@@ -18,7 +17,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from bench_sim import machine
-from versions import stamp
+from versions import write_results
 
 from jetbot_rt.calibration.intrinsics import Lens, radial_error_px
 from jetbot_rt.config.sections import load_config
@@ -88,10 +87,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as where:
             result["rows"].append(run(name, truth, Path(where)))
             print(result["rows"][-1], flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "lens_recovery.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
-    (args.out / "lens_recovery.md").write_text(markdown(result))
-    print(markdown(result))
+    write_results(args.out, "lens_recovery", result, markdown(result))
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ also gives the median time from the first worker's answer read to the last's, pe
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -29,7 +28,7 @@ from pathlib import Path
 
 import torch  # noqa: F401 - before pybullet (bench_sim): the other order segfaults on some builds
 from bench_sim import PATHS, bench_env, machine
-from versions import stamp
+from versions import write_results
 
 ARMS = {"sync": (False, False), "barrier": (True, False), "overlap": (True, True)}
 """Each arm's (``--overlap``, ``WorkerRollouts.pipelined``)."""
@@ -46,7 +45,7 @@ def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str)
 
     def timed(calls, *a, **k):
         answers = gather(calls, *a, **k)
-        spreads.append(calls.spreads[-1])
+        spreads.append(calls.last_spread)
         return answers
 
     with tempfile.TemporaryDirectory() as out:
@@ -142,10 +141,7 @@ def main() -> None:
         print(task, "sim", sim["steps_per_s_total"], flush=True)
     result["machine"]["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     name = f"overlap-{args.tag}" if args.tag else "overlap"
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{name}.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
-    (args.out / f"{name}.md").write_text(markdown(result))
-    print(markdown(result))
+    write_results(args.out, name, result, markdown(result))
 
 
 if __name__ == "__main__":

@@ -11,7 +11,6 @@ Writes sim.json and sim.md to --out (``--tag`` names them sim-TAG.* instead).
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import platform
@@ -20,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from versions import cpu_model, stamp
+from versions import cpu_model, write_results
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.sim.config import SimConfig
@@ -170,10 +169,7 @@ def main() -> None:
         print(row, flush=True)
     result["machine"]["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)
     name = f"sim-{args.tag}" if args.tag else "sim"
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{name}.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
-    (args.out / f"{name}.md").write_text(markdown(result))
-    print(markdown(result))
+    write_results(args.out, name, result, markdown(result))
 
 
 if __name__ == "__main__":

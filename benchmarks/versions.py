@@ -1,10 +1,12 @@
 """``stamp(result)``: a benchmark's results with the versions it ran with (python, numpy,
 torch, onnxruntime, opencv, pybullet, gymnasium, jetbot_rt, the git commit), for each script
-to call where it writes its JSON: ``json.dumps(stamp(result))``. The same record as
+to call where it writes its JSON: ``json.dumps(stamp(result))``; ``write_results`` writes
+the stamped JSON and its Markdown table side by side. The same record as
 ``jetbot-train eval --json``'s ``versions`` (jetbot_rt/train/versions.py)."""
 
 from __future__ import annotations
 
+import json
 import platform
 from pathlib import Path
 from typing import Any
@@ -30,3 +32,12 @@ def stamp(result: Any) -> Any:
     if isinstance(result, dict):
         return {**result, "versions": versions()}
     return {"rows": result, "versions": versions()}
+
+
+def write_results(out: Path, name: str, result: dict[str, Any], markdown: str) -> None:
+    """``out/NAME.json`` (``result`` stamped) and ``out/NAME.md`` (``markdown``, also
+    printed)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(stamp(result), indent=2) + "\n")
+    (out / f"{name}.md").write_text(markdown)
+    print(markdown)

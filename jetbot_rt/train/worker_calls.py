@@ -24,8 +24,8 @@ class WorkerCalls:
         self.vector = vector
         self.pending: set[int] = set()
         """Workers with a call sent and its answer not yet read."""
-        self.spreads: list[float] = []
-        """s between the first and the last answer of each ``gather``."""
+        self.last_spread: float | None = None
+        """s between the first and the last answer read by the last ``gather``."""
 
     def send(self, index: int, name: str, args: tuple[Any, ...]) -> None:
         """Call ``name(*args)`` on worker ``index``'s env (its answer read by ``gather``)."""
@@ -57,7 +57,7 @@ class WorkerCalls:
                 if then is not None:
                     then(index)
         if first is not None:
-            self.spreads.append(time.perf_counter() - first)
+            self.last_spread = time.perf_counter() - first
         return results
 
     def _raise(self, index: int) -> None:
