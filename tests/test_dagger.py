@@ -89,6 +89,73 @@ def test_stops_and_turns_on_the_spot_weigh_their_own_weights():
     assert dagger_args("avoid").turn_weight == 1.0  # off unless asked for
 
 
+def test_mirror_flips_only_the_chosen_frames_and_swaps_their_wheels():
+    from jetbot_rt.train.dagger import mirror
+
+    x = torch.arange(2 * 3 * 2 * 4, dtype=torch.float32).reshape(2, 3, 2, 4)
+    labels = torch.tensor([[0.2, 0.9], [1.0, -0.5]])
+    flipped, swapped = mirror(x, labels, np.array([False, True]))
+    assert torch.equal(flipped[0], x[0]) and torch.equal(swapped[0], labels[0])
+    assert torch.equal(flipped[1, :, :, 0], x[1, :, :, 3])  # columns reversed, rows kept
+    assert torch.equal(flipped[1, :, 0], x[1, :, 0].flip(-1))
+    assert swapped[1].tolist() == [-0.5, 1.0]
+    assert torch.equal(x[1, 0, 0], torch.tensor([24.0, 25.0, 26.0, 27.0]))  # input untouched
+
+
+def test_regression_with_mirror_learns_the_mirrored_label_of_symmetric_frames_only():
+    """Two frames, each lit on one side: the left-lit one labelled (left, right) = (0.2, 0.8)
+    and symmetric, so its mirror (lit on the right) learns (0.8, 0.2); the right-lit one is
+    labelled (0.5, 0.5) and not symmetric, so its label is never swapped."""
+    from jetbot_rt.train.dagger import Dataset, regress
+    from jetbot_rt.train.hyperparams import dagger_args
+    from jetbot_rt.train.model import ActorCritic
+
+    args = dagger_args("avoid", {"train_samples": 2048, "batch_size": 32,
+                                 "learning_rate": 3e-3, "photometric_jitter": 0.0,
+                                 "mirror": 0.5})
+    frames = np.zeros((3, 56, 56, 3), dtype=np.uint8)
+    frames[0, :, :28] = 255  # lit on the left
+    frames[1, :, 28:, 1] = 255  # green on the right, never mirrored
+    frames[2, :, 28:, 1] = 255
+    frames[2, :, 28:, 0] = 255  # yellow on the right: frame 0 in a mirror, and only that
+    data = Dataset((56, 56, 3))
+    data.add(frames[:2], np.array([[0.2, 0.8], [0.5, 0.5]], dtype=np.float32),
+             np.array([True, False]))
+    torch.manual_seed(0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    model = ActorCritic(args.model)
+    optimizer = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
+    try:
+        regress(model, optimizer, data, args, np.random.default_rng(0))
+    finally:
+        torch.set_num_threads(threads)
+    mirrored = frames[0, :, ::-1].copy()
+    with torch.no_grad():
+        mu = model(torch.from_numpy(np.stack([frames[0], frames[1], mirrored])))[0].numpy()
+    assert np.abs(mu - [[0.2, 0.8], [0.5, 0.5], [0.8, 0.2]]).max() < 0.1
+
+
+def test_avoid_expert_is_symmetric_in_the_open_and_mirrors_there():
+    from jetbot_rt.tasks.avoid import AvoidExpert
+
+    expert, rng = AvoidExpert(), np.random.default_rng(5)
+    open_ways = 0
+    for _ in range(200):
+        ranges = rng.uniform(0.1, 1.0, 9)
+        info, mirrored = {"ranges": ranges}, {"ranges": ranges[::-1].copy()}
+        if expert.symmetric(info):
+            open_ways += 1
+            assert expert.symmetric(mirrored)
+            assert np.allclose(expert.label(mirrored), expert.label(info)[::-1], atol=1e-6)
+        else:  # something close ahead: the turn is always left, whichever the side
+            assert expert.urgency(ranges) > 0
+    assert 20 < open_ways < 180
+    blocked = {"ranges": np.full(9, 0.1)}
+    assert not expert.symmetric(blocked)
+    assert np.allclose(expert.label(blocked), [-0.9, 0.9])
+
+
 def test_dataset_keeps_every_added_frame_in_order_as_it_grows():
     from jetbot_rt.train.dagger import Dataset
 
@@ -96,11 +163,17 @@ def test_dataset_keeps_every_added_frame_in_order_as_it_grows():
     data = Dataset((4, 4, 3))
     batches = [(rng.integers(0, 256, (n, 4, 4, 3), dtype=np.uint8),
                 rng.standard_normal((n, 2)).astype(np.float32)) for n in (5, 0, 1, 17, 3, 40)]
-    for frames, labels in batches:
-        data.add(frames, labels)
+    flags = [rng.random(len(labels)) < 0.5 if i % 2 else None
+             for i, (_, labels) in enumerate(batches)]
+    for (frames, labels), symmetric in zip(batches, flags):
+        data.add(frames, labels, symmetric)
     assert len(data) == 66
     assert np.array_equal(data.frames, np.concatenate([f for f, _ in batches]))
     assert np.array_equal(data.labels, np.concatenate([la for _, la in batches]))
+    expected = [np.zeros(len(la), bool) if s is None else s
+                for (_, la), s in zip(batches, flags)]
+    assert np.array_equal(data.symmetric, np.concatenate(expected))
+    assert data.symmetric.any() and not data.symmetric.all()
 
 
 def test_photometric_jitter_scales_each_frame_within_its_range():

@@ -51,6 +51,24 @@ def test_the_expert_drives_with_beta_1_and_every_frame_carries_its_label(sampler
         obs, _, terminated, truncated, info = env.step(label)
         assert not (terminated or truncated)
     assert len({frames[t].tobytes() for t in range(60)}) > 50, "one buffer kept"
+    assert len(result["symmetric"]) == len(labels) and not result["symmetric"].any()
+
+
+class SidedExpert(Expert):
+    """seek's expert, called symmetric where its label turns right: a flag the test can
+    recompute from the labels, so each frame's flag is shown to be of that frame's state."""
+
+    def symmetric(self, info):
+        return bool(np.subtract(*self.label(info)) > 0)
+
+
+def test_each_frame_carries_the_experts_symmetric_on_its_state(sampler):
+    result = sampler.collect_labelled(weights_of(ActorCritic(MODEL)), 150, (6, 1), 1.0, 0.2,
+                                      SidedExpert())
+    labels, symmetric = result["labels"], result["symmetric"]
+    assert symmetric.dtype == bool and len(symmetric) == len(labels)
+    np.testing.assert_array_equal(symmetric, labels[:, 0] > labels[:, 1])
+    assert symmetric.any() and not symmetric.all()
 
 
 def test_the_student_drives_with_beta_0_on_its_networks_mu(sampler):

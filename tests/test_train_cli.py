@@ -207,6 +207,8 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, smoke_run, capsys):
         (["eval", "--episodes", "0"], "--episodes"),
         (["train", "--algo", "dagger", "--task", "avoid", "--turn-weight", "-1", "--out",
           str(tmp_path / "x")], "--turn-weight must be >= 0, got -1"),
+        (["train", "--algo", "dagger", "--task", "seek", "--mirror", "0.5", "--out",
+          str(tmp_path / "x")], "--mirror needs an expert with symmetric(info)"),
     ]
     # Each case in this process (an interpreter and torch start per case cost ~3-6 s each);
     # two of them, one refused by the parser and one by the command, through the console

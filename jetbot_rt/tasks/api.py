@@ -55,7 +55,11 @@ class Expert(Protocol):
     reads: tuple[str, ...]
 
     def label(self, info: dict[str, Any]) -> np.ndarray:
-        """``[left, right]`` in [-1, 1]: the teacher's action in the state ``info`` shows."""
+        """``[left, right]`` in [-1, 1]: the teacher's action in the state ``info`` shows.
+
+        Optional: ``symmetric(info) -> bool``, true where the teacher's rule is the same
+        mirrored: in the scene seen in a mirror it would answer this label with its wheels
+        swapped. DAgger's ``--mirror`` flips only those frames (``dagger.regress``)."""
 
 
 class Task:

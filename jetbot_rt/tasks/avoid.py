@@ -275,6 +275,17 @@ class AvoidExpert:
 
     reads: tuple[str, ...] = ("ranges",)
 
+    def urgency(self, ranges: np.ndarray) -> float:
+        """0 with ``clear`` m or more free ahead (rays within 20 degrees), 1 at ``blocked``."""
+        front = float(np.min(ranges[np.abs(RAY_ANGLES) <= math.radians(20.0)]))
+        return float(np.clip((self.clear - front) / (self.clear - self.blocked), 0.0, 1.0))
+
+    def symmetric(self, info: dict[str, Any]) -> bool:
+        """In the open (no urgency) and without a left bias the rule has no side: the
+        mirrored rays get the mirrored label. Near something it always turns left."""
+        ranges = np.asarray(info["ranges"], dtype=np.float64)
+        return self.left_bias == 0.0 and self.urgency(ranges) == 0.0
+
     def label(self, info: dict[str, Any]) -> np.ndarray:
         ranges = np.asarray(info["ranges"], dtype=np.float64)
         front = float(np.min(ranges[np.abs(RAY_ANGLES) <= math.radians(20.0)]))
@@ -288,7 +299,7 @@ class AvoidExpert:
         # averaged them into a slow creep (73 % at the first try, most misses too short).
         # Near something a right steer would cancel the left spin, so the steer turns left
         # too, gradually (a sudden flip at ``clear`` was a jump in the labels).
-        urgency = float(np.clip((self.clear - front) / (self.clear - self.blocked), 0.0, 1.0))
+        urgency = self.urgency(ranges)
         steer = (1 - urgency) * steer + urgency * abs(steer)
         turn = (1 - urgency) * steer + urgency * self.spin
         forward = (1 - urgency) * max(self.forward * min(1.0, front / 0.5), self.min_forward)

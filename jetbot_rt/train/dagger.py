@@ -45,7 +45,8 @@ EXPERT_SETTINGS = ("stop_distance", "min_forward", "search_bearing_deg", "search
 
 
 class Dataset:
-    """The aggregated frames (uint8, as rendered) and the expert's labels, growing.
+    """The aggregated frames (uint8, as rendered), the expert's labels and whether the
+    expert's rule was symmetric at each (``Expert.symmetric``), growing.
 
     Stored in buffers that double when full, so adding an iteration's frames copies only
     those (concatenating re-copied the whole aggregate every iteration: seconds per
@@ -54,6 +55,7 @@ class Dataset:
     def __init__(self, shape: tuple[int, ...]) -> None:
         self._frames = np.zeros((0, *shape), dtype=np.uint8)
         self._labels = np.zeros((0, 2), dtype=np.float32)
+        self._symmetric = np.zeros(0, dtype=bool)
         self._size = 0
 
     @property
@@ -64,7 +66,13 @@ class Dataset:
     def labels(self) -> np.ndarray:
         return self._labels[:self._size]
 
-    def add(self, frames: np.ndarray, labels: np.ndarray) -> None:
+    @property
+    def symmetric(self) -> np.ndarray:
+        return self._symmetric[:self._size]
+
+    def add(self, frames: np.ndarray, labels: np.ndarray,
+            symmetric: np.ndarray | None = None) -> None:
+        """``symmetric``: a bool per frame (None: none is)."""
         count = len(frames)
         if not count:
             return
@@ -75,9 +83,13 @@ class Dataset:
             grown[:self._size] = self.frames
             grown_labels = np.empty((capacity, 2), dtype=np.float32)
             grown_labels[:self._size] = self.labels
+            grown_symmetric = np.zeros(capacity, dtype=bool)
+            grown_symmetric[:self._size] = self.symmetric
             self._frames, self._labels = grown, grown_labels
+            self._symmetric = grown_symmetric
         self._frames[self._size:needed] = frames
         self._labels[self._size:needed] = labels
+        self._symmetric[self._size:needed] = False if symmetric is None else symmetric
         self._size = needed
 
     def __len__(self) -> int:
@@ -109,10 +121,24 @@ def label_weights(labels: np.ndarray, args: DAggerArgs) -> np.ndarray:
                     np.where(spin, args.turn_weight, 1.0)).astype(np.float32)
 
 
+def mirror(x: torch.Tensor, labels: torch.Tensor, flip: np.ndarray
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x`` (NCHW) and ``labels`` (``[N, 2]``, left and right) with the rows where ``flip``
+    is true seen in a mirror: the image's columns reversed, the wheels swapped."""
+    if not flip.any():
+        return x, labels
+    rows = torch.from_numpy(np.flatnonzero(flip)).to(x.device)
+    x, labels = x.clone(), labels.clone()
+    x[rows] = x[rows].flip(-1)
+    labels[rows] = labels[rows].flip(-1)
+    return x, labels
+
+
 def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
             args: DAggerArgs, rng: np.random.Generator) -> float:
     """Weighted MSE of ``mu`` onto the labels over ``args.train_samples`` frames; the mean
-    loss."""
+    loss. With ``args.mirror`` each frame the expert was symmetric on is seen in a mirror
+    with that probability (``mirror``)."""
     model.train()
     losses: list[float] = []
     device = next(model.parameters()).device
@@ -125,9 +151,13 @@ def regress(model: ActorCritic, optimizer: torch.optim.Optimizer, data: Dataset,
         x = model.preprocess(torch.from_numpy(data.frames[idx]).to(device))
         if args.photometric_jitter > 0:
             x = jitter(x, args.photometric_jitter, rng)
-        mu = model.heads(x)[0]
         rows = torch.from_numpy(idx).to(device)
-        error = ((mu - labels[rows]) ** 2).sum(-1)
+        targets = labels[rows]
+        if args.mirror > 0:
+            flip = data.symmetric[idx] & (rng.random(len(idx)) < args.mirror)
+            x, targets = mirror(x, targets, flip)
+        mu = model.heads(x)[0]
+        error = ((mu - targets) ** 2).sum(-1)
         loss = (error * weights[rows]).sum() / weights[rows].sum()
         optimizer.zero_grad()
         loss.backward()
@@ -151,7 +181,7 @@ def collect(envs: VectorEnv, model: ActorCritic, expert: Any, data: Dataset,
     outcomes: dict[bool, list[float]] = {True: [], False: []}
     steps = 0
     for result in results:
-        data.add(result["frames"], result["labels"])
+        data.add(result["frames"], result["labels"], result["symmetric"])
         steps += len(result["labels"])
         for by_expert, success in result["outcomes"]:
             outcomes[by_expert].append(float(success))

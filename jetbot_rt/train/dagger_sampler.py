@@ -67,13 +67,16 @@ class LabelSampler(PolicySampler):
         (``FrameState``); "now", on the state at the frame's delivery.
 
         Returns ``frames`` (uint8, every frame an action was chosen on), ``labels`` (the
-        expert's action on each) and ``outcomes``: (driven by the expert, success) per
-        episode."""
+        expert's action on each), ``symmetric`` (the expert's ``symmetric`` on each; all
+        false for an expert without it) and ``outcomes``: (driven by the expert, success)
+        per episode."""
         policy = self._policy(weights)
         rng = np.random.default_rng([seed[0], seed[1], self.index])
         obs, info = self.env.reset(seed=seed[0] * 100_000 + seed[1] * 1000 + self.index)
         frames: list[np.ndarray] = []
         labels: list[np.ndarray] = []
+        symmetric: list[bool] = []
+        mirrors = getattr(expert, "symmetric", None)
         outcomes: list[tuple[bool, bool]] = []
         period = float(self.env.unwrapped.period) if expert_sees == "frame" else None
         while len(frames) < min_steps:
@@ -89,10 +92,11 @@ class LabelSampler(PolicySampler):
                     action = np.clip(policy(obs[None])[0][0], -1.0, 1.0)
                 frames.append(obs)
                 labels.append(label)
+                symmetric.append(mirrors is not None and bool(mirrors(seen.info)))
                 obs, _, terminated, truncated, info = self.env.step(action)
                 seen.push(info)
                 done = terminated or truncated
             outcomes.append((by_expert, bool(info["is_success"])))
             obs, info = self.env.reset()
         return {"frames": np.stack(frames), "labels": np.stack(labels).astype(np.float32),
-                "outcomes": outcomes}
+                "symmetric": np.array(symmetric, dtype=bool), "outcomes": outcomes}

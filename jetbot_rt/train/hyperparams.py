@@ -574,6 +574,11 @@ class DAggerArgs(CurriculumOptions):
     """Loss weight of frames the expert labels a turn on the spot (one wheel backwards, the
     other forwards): avoid's "blocked", rare and the ones that decide a touch, which its
     student under-answered ((+0.5, +0.9) for (-0.9, +0.9)). 1: weighed as any frame."""
+    mirror: float = 0.0
+    """The probability that a regressed frame is seen in a mirror (columns reversed, the
+    label's wheels swapped), for frames on which the expert's rule has no side
+    (``Expert.symmetric``: avoid's in the open). Its student leaned left in the open, its
+    only turn on the spot being left. 0: never."""
     stop_distance: float = Expert.stop_distance
     """m; the expert commands zero from this distance to the goal on (``Expert``)."""
     min_forward: float = Expert.min_forward
@@ -617,6 +622,12 @@ class DAggerArgs(CurriculumOptions):
         for name in ("stop_weight", "turn_weight"):  # a negative one trains away from them
             if getattr(self, name) < 0:
                 raise OptionError(name, f"must be >= 0, got {getattr(self, name):g}")
+        if not 0.0 <= self.mirror <= 1.0:
+            raise OptionError("mirror", f"must be within [0, 1], got {self.mirror:g}")
+        if self.mirror > 0 and not hasattr(load_task(self.task).expert(), "symmetric"):
+            raise OptionError("mirror", f"needs an expert with symmetric(info); the "
+                                        f"{self.task} task's has none, so no frame would "
+                                        "be mirrored")
         if self.expert_sees not in EXPERT_SEES:
             raise OptionError("expert_sees", f"must be one of {', '.join(EXPERT_SEES)}, got "
                                              f"{value_text(self.expert_sees)}")
