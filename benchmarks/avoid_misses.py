@@ -3,7 +3,7 @@
 avoid fails (``tasks/avoid.py``): a touch, a circle (``min_path`` driven but never
 ``min_reach`` from the start) or a short drive (less than ``min_path``).
 
-    python benchmarks/avoid_misses.py --policy P.onnx --eval randomized.json [--episodes 100] [--config C]
+    python benchmarks/avoid_misses.py --policy P.onnx --eval randomized.json [--episodes N]
 
 Prints one line a miss and the counts; the replay uses the evaluation's own episode code
 (``evaluate.run_episode``), so a miss that does not fail again is printed as "passed now".
