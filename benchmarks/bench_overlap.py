@@ -1,10 +1,11 @@
 """PPO end to end against the simulator alone, in the same run (issue 21, target 1): for each
 task, the env steps/s of N processes stepping the task's env with random commands
-(``bench_sim.bench_env``), then ``jetbot-train``'s PPO with N envs in three arms: synchronous,
-``--overlap`` with one barrier a rollout (every worker given its next rollout when the last
-one has answered: the code of 38dce43..054ebc4, ``WorkerRollouts.pipelined`` off) and
-``--overlap`` as it is (each worker given its next rollout the moment it answers), rounds
-interleaved so that a drift of the machine touches every arm alike.
+(``bench_sim.bench_env``), then ``jetbot-train``'s PPO with N envs in the arms ``--arms``
+names (default all): synchronous, ``--overlap`` with one barrier a rollout (every worker given
+its next rollout when the last one has answered: the code of 38dce43..054ebc4,
+``WorkerRollouts.pipelined`` off), ``--overlap`` as it is (each worker given its next rollout
+the moment it answers) and ``--overlap --balance`` (a rollout's steps shared among the workers
+as they come), rounds interleaved so that a drift of the machine touches every arm alike.
 
     python benchmarks/bench_overlap.py --num-envs 16 --device cuda --tag h200-16
 
@@ -30,8 +31,11 @@ import torch  # noqa: F401 - before pybullet (bench_sim): the other order segfau
 from bench_sim import PATHS, bench_env, machine
 from versions import write_results
 
-ARMS = {"sync": (False, False), "barrier": (True, False), "overlap": (True, True)}
-"""Each arm's (``--overlap``, ``WorkerRollouts.pipelined``)."""
+ARMS = {"sync": (False, False, False), "barrier": (True, False, False),
+        "overlap": (True, True, False), "balanced": (True, True, True)}
+"""Each arm's (``--overlap``, ``WorkerRollouts.pipelined``, ``--balance``)."""
+ARM_TITLES = {"sync": "PPO sync", "barrier": "--overlap, one barrier", "overlap": "--overlap now",
+              "balanced": "--overlap --balance"}
 
 
 def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str) -> dict:
@@ -39,7 +43,7 @@ def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str)
     from jetbot_rt.train.hyperparams import ppo_args
     from jetbot_rt.train.ppo import train
 
-    overlap, pipelined = ARMS[arm]
+    overlap, pipelined, balance = ARMS[arm]
     spreads: list[float] = []
     gather = rollout.WorkerCalls.gather
 
@@ -50,7 +54,8 @@ def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str)
 
     with tempfile.TemporaryDirectory() as out:
         args = ppo_args(task, {"total_timesteps": steps, "num_envs": num_envs, "out": out,
-                               "progress": False, "overlap": overlap, "device": device})
+                               "progress": False, "overlap": overlap, "device": device,
+                               "balance": balance})
         rollout.WorkerRollouts.pipelined = pipelined
         rollout.WorkerCalls.gather = timed
         start = time.perf_counter()
@@ -69,6 +74,7 @@ def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str)
 
 def markdown(result: dict) -> str:
     m = result["machine"]
+    arms = result["arms"]
     lines = [
         "# PPO end to end against the simulator alone", "",
         f"Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, learner on "
@@ -77,13 +83,12 @@ def markdown(result: dict) -> str:
         f"{result['num_envs']} env processes. Simulator alone: `JetbotEnv.step` with random "
         f"commands, {result['env_steps']} steps a process. PPO: the task's default recipe, "
         f"{result['steps']} env steps a run, {result['rounds']} rounds (the arms "
-        "interleaved: synchronous, --overlap with one barrier a rollout, --overlap now); "
-        "env steps/s, the median and every run in brackets, then the share of the "
-        "simulator alone; the spread is the median time from a rollout's first worker "
-        "answer read to its last.", "",
-        "| task | simulator alone | PPO sync | --overlap, one barrier | --overlap now "
-        "| spread, barrier / now (ms) | now / barrier |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        f"interleaved: {', '.join(ARM_TITLES[a] for a in arms)}); env steps/s, the median "
+        "and every run in brackets, then the share of the simulator alone; the spread is "
+        "the median time from a rollout's first worker answer read to its last (ms).", "",
+        "| task | simulator alone | " + " | ".join(ARM_TITLES[a] for a in arms)
+        + " | spread (ms) |",
+        "| --- | --- | " + " | ".join("---" for _ in arms) + " | --- |",
     ]
 
     def cell(arm: dict, total: float) -> str:
@@ -92,11 +97,10 @@ def markdown(result: dict) -> str:
 
     for row in result["tasks"]:
         total = row["sim"]["steps_per_s_total"]
-        spreads = [row[arm]["spread_ms"] for arm in ("barrier", "overlap")]
-        lines.append(
-            f"| {row['task']} | {total} | {cell(row['sync'], total)} | "
-            f"{cell(row['barrier'], total)} | {cell(row['overlap'], total)} | "
-            f"{spreads[0]} / {spreads[1]} | x{row['overlap_over_barrier']} |")
+        spreads = " / ".join(f"{a} {row[a]['spread_ms']}" for a in arms
+                             if row[a]["spread_ms"] is not None)
+        lines.append(f"| {row['task']} | {total} | "
+                     + " | ".join(cell(row[a], total) for a in arms) + f" | {spreads} |")
     return "\n".join(lines) + "\n"
 
 
@@ -110,33 +114,31 @@ def main() -> None:
     parser.add_argument("--device", default="auto")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     parser.add_argument("--tag", default="")
+    parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS))
     args = parser.parse_args()
 
     result: dict = {"machine": machine(), "num_envs": args.num_envs, "steps": args.steps,
                     "env_steps": args.env_steps, "rounds": args.rounds, "device": args.device,
                     "command": "python benchmarks/bench_overlap.py " + " ".join(sys.argv[1:]),
-                    "tasks": []}
+                    "arms": args.arms, "tasks": []}
     for task in args.tasks:
         sim = bench_env({**PATHS["train"], "task": task}, args.num_envs, args.env_steps)
-        runs: dict[str, list[dict]] = {arm: [] for arm in ARMS}
+        runs: dict[str, list[dict]] = {arm: [] for arm in args.arms}
         for _ in range(args.rounds):
-            for arm in ARMS:
+            for arm in args.arms:
                 run = ppo_steps_per_s(task, args.num_envs, args.steps, arm, args.device)
                 runs[arm].append(run)
                 print(task, run, flush=True)
         row = {"task": task, "sim": sim}
-        for arm in ARMS:
+        for arm in args.arms:
             rates = [r["steps_per_s"] for r in runs[arm]]
             spreads = [r["spread_ms"] for r in runs[arm] if r["spread_ms"] is not None]
             row[arm] = {"median": statistics.median(rates), "runs": rates,
                         "spread_ms": statistics.median(spreads) if spreads else None,
                         "detail": runs[arm]}
         total = sim["steps_per_s_total"]
-        for arm in ARMS:
+        for arm in args.arms:
             row[f"{arm}_over_sim"] = round(row[arm]["median"] / total, 3)
-        row["overlap_over_sync"] = round(row["overlap"]["median"] / row["sync"]["median"], 2)
-        row["overlap_over_barrier"] = round(
-            row["overlap"]["median"] / row["barrier"]["median"], 3)
         result["tasks"].append(row)
         print(task, "sim", sim["steps_per_s_total"], flush=True)
     result["machine"]["loadavg_1min_at_end"] = round(os.getloadavg()[0], 2)

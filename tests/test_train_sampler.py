@@ -15,6 +15,7 @@ from jetbot_rt.train.hyperparams import PPOArgs, ppo_args
 from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.ppo import train
 from jetbot_rt.train.sampler import PolicySampler, normalize_segment, stack_segments
+from jetbot_rt.train.shared_steps import SharedSteps
 from jetbot_rt.train.vec_env import EnvSpec, worker_env
 from jetbot_rt.train.wrappers import normalize_rewards
 
@@ -120,6 +121,26 @@ def test_segments_are_seeded_by_run_update_and_env(sampler):
     assert np.array_equal(noise[0], noise[1]) and not np.array_equal(noise[0], noise[2])
     stacked = stack_segments((segment, segment))
     assert stacked["actions"].shape == (4, 2, 2) and stacked["next_obs"].shape == (2, 56, 56, 3)
+
+
+def test_a_worker_steps_until_the_workers_together_have_the_rollout(sampler):
+    env, args = sampler
+    weights = to_cpu(ActorCritic(args.model).state_dict())
+    counters = SharedSteps.create(2)
+    try:
+        lengths = []
+        for others in (20, 100, 0):
+            share = counters.share(7, total=30, min_steps=5)
+            counters.counts[share.bank, 0] = others  # what the other worker has taken
+            segment = env.collect(weights, 50, (1, 7), share)
+            lengths.append(len(segment["rewards"]))
+            assert segment["obs"].shape[0] == segment["actions"].shape[0] == lengths[-1]
+            assert counters.counts[share.bank, 1] == lengths[-1]
+        assert lengths == [10, 5, 30]  # the rest of 30; its minimum; all of it alone
+        share = counters.share(8, total=500, min_steps=5)
+        assert len(env.collect(weights, 50, (1, 8), share)["rewards"]) == 50  # at most
+    finally:
+        counters.close()
 
 
 def test_training_through_worker_processes_samples_in_them(tmp_path):

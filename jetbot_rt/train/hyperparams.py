@@ -305,6 +305,14 @@ class PPOArgs(CurriculumOptions):
     spare cores: with every core stepping an env, the update and the workers share them
     (docs/TRAINING.md, "Speed"). Not with a curriculum (its difficulty would reach the
     workers a rollout late)."""
+    balance: bool = False
+    """With the policy in the env workers: a rollout is ``num_envs * num_steps`` env steps in
+    all, each worker stepping until the workers together have them (at least
+    ``num_steps // 4``, at most ``2 * num_steps`` each), instead of ``num_steps`` each. A
+    worker's scene costs the same for a whole episode and scenes differ (seek's by 1.6x), so
+    with equal shares every rollout runs at the pace of its dearest scene. What changes
+    (Sample Factory's batches): an env in a cheap scene contributes more steps to a rollout
+    than one in a dear scene; the weights, the policy lag and the losses are the same."""
     device: str = "auto"
     """Where the learner (network, rollout buffers, optimizer, the rollout's forward pass)
     runs: "auto" (CUDA when torch sees a GPU, else the CPU), "cpu", "cuda" or "cuda:N". Env
@@ -412,6 +420,9 @@ class PPOArgs(CurriculumOptions):
                                          f"got {self.workers}")
         if self.overlap and not self.samples_in_workers:
             raise OptionError("overlap", "needs the policy in the env workers (worker "
+                                         "processes, sample_in_workers, no ray)")
+        if self.balance and not self.samples_in_workers:
+            raise OptionError("balance", "needs the policy in the env workers (worker "
                                          "processes, sample_in_workers, no ray)")
         if self.overlap and self.curriculum:
             raise OptionError("overlap", "cannot run with curriculum: the difficulty would "

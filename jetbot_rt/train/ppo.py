@@ -48,9 +48,13 @@ CURVE = (Panel("mean_return", "mean episode return", scale=("symlog", {"linthres
 
 def gae(rewards: torch.Tensor, values: torch.Tensor, dones: torch.Tensor,
         next_value: torch.Tensor, next_done: torch.Tensor, gamma: float,
-        lam: float) -> tuple[torch.Tensor, torch.Tensor]:
+        lam: float, lengths: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Generalized advantage estimation over ``[num_steps, num_envs]`` tensors (``dones[t]``:
-    the episode ended before step t); the advantages and the returns (advantage + value)."""
+    the episode ended before step t); the advantages and the returns (advantage + value).
+    ``lengths`` (``--balance``): each env's steps; ``next_value`` and ``next_done`` follow an
+    env's last one, and the padding below it gets 0."""
+    if lengths is not None:
+        return _ragged_gae(rewards, values, dones, next_value, next_done, gamma, lam, lengths)
     num_steps = rewards.shape[0]
     advantages = torch.zeros_like(rewards)
     last_gae = torch.zeros(rewards.shape[1], device=rewards.device)
@@ -61,6 +65,26 @@ def gae(rewards: torch.Tensor, values: torch.Tensor, dones: torch.Tensor,
             not_done, following = 1.0 - dones[t + 1], values[t + 1]
         delta = rewards[t] + gamma * following * not_done - values[t]
         last_gae = delta + gamma * lam * not_done * last_gae
+        advantages[t] = last_gae
+    return advantages, advantages + values
+
+
+def _ragged_gae(rewards: torch.Tensor, values: torch.Tensor, dones: torch.Tensor,
+                next_value: torch.Tensor, next_done: torch.Tensor, gamma: float, lam: float,
+                lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    num_steps = rewards.shape[0]
+    advantages = torch.zeros_like(rewards)
+    last_gae = torch.zeros(rewards.shape[1], device=rewards.device)
+    for t in reversed(range(num_steps)):
+        last = lengths == t + 1
+        if t == num_steps - 1:
+            following, not_done = next_value, 1.0 - next_done
+        else:
+            following = torch.where(last, next_value, values[t + 1])
+            not_done = torch.where(last, 1.0 - next_done, 1.0 - dones[t + 1])
+        delta = rewards[t] + gamma * following * not_done - values[t]
+        last_gae = torch.where(t < lengths, delta + gamma * lam * not_done * last_gae,
+                               torch.zeros_like(last_gae))
         advantages[t] = last_gae
     return advantages, advantages + values
 
@@ -97,14 +121,22 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
     lag_weights = (None if rollout.behaviour_logprobs is None else
                    (old_logprobs - rollout.behaviour_logprobs.reshape(-1)).exp().clamp(max=1.0))
     advantages, returns = advantages.reshape(-1), returns.reshape(-1)
+    valid = rollout.valid
+    if valid is not None:  # --balance: the envs' steps, not the padding
+        kept = valid.reshape(-1).nonzero().squeeze(1)
+        obs, actions, old_logprobs = obs[kept], actions[kept], old_logprobs[kept]
+        advantages, returns = advantages[kept], returns[kept]
+        states = None if states is None else states[kept]
+        lag_weights = None if lag_weights is None else lag_weights[kept]
     batch_size = len(old_logprobs)
-    minibatch_size = max(1, batch_size // options.num_minibatches)
     clip = options.clip_coef
     clipfracs: list[float] = []
     for _ in range(options.update_epochs):
-        order = rng.permutation(batch_size)
-        for begin in range(0, batch_size, minibatch_size):
-            mb = torch.from_numpy(order[begin:begin + minibatch_size]).to(obs.device)
+        # sizes within one of each other: a remainder minibatch of one sample has no std
+        # to normalise its advantage by (NaN)
+        for part in np.array_split(rng.permutation(batch_size),
+                                   min(options.num_minibatches, batch_size)):
+            mb = torch.from_numpy(part).to(obs.device)
             dist, new_value = model.distribution(obs[mb], None if states is None else states[mb])
             new_logprob = dist.log_prob(actions[mb]).sum(-1)
             entropy = dist.entropy().sum(-1).mean()
@@ -237,7 +269,8 @@ class _Run:
         with torch.no_grad():
             next_value = model.value(rollout.next_obs, rollout.next_state)
         advantages, returns = gae(rollout.rewards, rollout.values, rollout.dones, next_value,
-                                  rollout.next_done, options.gamma, options.gae_lambda)
+                                  rollout.next_done, options.gamma, options.gae_lambda,
+                                  rollout.lengths)
         # the update's threads take the cores the workers leave idle: none while they collect
         torch.set_num_threads(options.torch_threads if overlapping else options.update_threads)
         stats = ppo_update(model, self.optimizer, rollout, advantages, returns, options,

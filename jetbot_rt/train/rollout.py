@@ -44,9 +44,15 @@ from jetbot_rt.train.device import to_cpu
 from jetbot_rt.train.hyperparams import PPOArgs
 from jetbot_rt.train.model import ActorCritic, normal_log_prob
 from jetbot_rt.train.sampler import PolicySampler, normalize_segment, stack_segments
+from jetbot_rt.train.shared_steps import SharedSteps
 from jetbot_rt.train.vec_env import EPISODE_INFO, EnvSpec, close_vector_env, make_vector_env
 from jetbot_rt.train.worker_calls import WorkerCalls
 from jetbot_rt.train.wrappers import CRITIC_STATE, normalize_rewards
+
+BALANCE_CAP = 2
+"""``--balance``: a worker takes at most this many times ``num_steps`` in a rollout."""
+BALANCE_FLOOR = 4
+"""``--balance``: and at least ``num_steps`` over this."""
 
 
 @dataclass
@@ -75,10 +81,24 @@ class Rollout:
     behaviour_logprobs: torch.Tensor | None = None
     """A rollout collected with older weights than the learner's (``overlap``): their
     log-probabilities of its actions, while ``logprobs`` are the learner's; else None."""
+    lengths: torch.Tensor | None = None
+    """``--balance``: each env's steps (``[num_envs]``); the rows below an env's length are
+    padding, in no loss. None: every env has every step."""
 
     @property
     def steps(self) -> int:
+        if self.lengths is not None:
+            return int(self.lengths.sum())
         return self.rewards.numel()
+
+    @property
+    def valid(self) -> torch.Tensor | None:
+        """``[num_steps, num_envs]``: whether the step is an env's (``lengths``); None when
+        all are."""
+        if self.lengths is None:
+            return None
+        rows = torch.arange(self.rewards.shape[0], device=self.rewards.device)
+        return rows[:, None] < self.lengths[None, :]
 
 
 class RolloutSource:
@@ -88,7 +108,7 @@ class RolloutSource:
                  device: torch.device, obs_shape: tuple[int, ...], state_size: int = 0) -> None:
         """``state_size``: the asymmetric critic's input width (0: no critic state)."""
         self.envs, self.normalizer, self.options, self.device = envs, normalizer, options, device
-        shape = (options.num_steps, options.num_envs)
+        shape = (options.num_steps * (BALANCE_CAP if options.balance else 1), options.num_envs)
         self.obs = torch.zeros((*shape, *obs_shape), device=device)
         self.actions = torch.zeros((*shape, 2), device=device)
         self.logprobs, self.rewards, self.dones, self.values = (
@@ -126,10 +146,16 @@ class RolloutSource:
         close_vector_env(self.envs, interrupted)
 
     def _rollout(self, episodes: list[tuple[float, float, float]],
-                 behaviour_logprobs: torch.Tensor | None = None) -> Rollout:
-        return Rollout(self.obs, self.actions, self.logprobs, self.rewards, self.dones,
-                       self.values, self.next_obs, self.next_done, episodes, self.states,
-                       self.next_state, behaviour_logprobs)
+                 behaviour_logprobs: torch.Tensor | None = None, rows: int | None = None,
+                 lengths: np.ndarray | None = None) -> Rollout:
+        """The buffers' first ``rows`` steps (all: None) as a ``Rollout``."""
+        part = slice(None) if rows is None else slice(0, rows)
+        return Rollout(self.obs[part], self.actions[part], self.logprobs[part],
+                       self.rewards[part], self.dones[part], self.values[part], self.next_obs,
+                       self.next_done, episodes,
+                       None if self.states is None else self.states[part], self.next_state,
+                       behaviour_logprobs,
+                       None if lengths is None else torch.as_tensor(lengths, device=self.device))
 
 
 class LearnerRollouts(RolloutSource):
@@ -192,6 +218,8 @@ class WorkerRollouts(RolloutSource):
     behaviour_logprobs: torch.Tensor | None = None
     calls: WorkerCalls | None = None
     """The workers' pipes, with ``overlap`` (else gymnasium's calls)."""
+    shared: SharedSteps | None = None
+    """``--balance``: the workers' step counters."""
     pipelined = True
     """With ``overlap``: each worker is sent its next rollout as soon as its last one arrives
     (``worker_calls``) instead of when the last worker's has (one barrier a rollout)."""
@@ -200,14 +228,23 @@ class WorkerRollouts(RolloutSource):
         super().__init__(*args, **kwargs)
         if self.options.overlap:
             self.calls = WorkerCalls(self.envs.unwrapped)
+        if self.options.balance:
+            self.shared = SharedSteps.create(self.options.num_envs)
 
     def _call(self, model: ActorCritic, update: int) -> tuple[Any, ...]:
+        """Rollout ``update``'s call; made before any of its sends (it zeroes the rollout's
+        step counters with ``--balance``)."""
         # numpy, not tensors: torch pickles a tensor as a shared-memory file descriptor
         # handed over by a resource_sharer thread, which prints a traceback when a worker
         # dies on Ctrl-C mid-handover. Each send pickles them then and there: they must all
         # be sent before the update changes the model's tensors in place.
         weights = {name: w.numpy() for name, w in to_cpu(model.actor_state_dict()).items()}
-        return weights, self.options.num_steps, (self.options.seed, update)
+        options = self.options
+        if self.shared is None:
+            return weights, options.num_steps, (options.seed, update)
+        share = self.shared.share(update, options.num_envs * options.num_steps,
+                                  max(1, options.num_steps // BALANCE_FLOOR))
+        return weights, BALANCE_CAP * options.num_steps, (options.seed, update), share
 
     def _send(self, model: ActorCritic, update: int) -> None:
         self.waiting = True
@@ -245,60 +282,72 @@ class WorkerRollouts(RolloutSource):
         lagged = self.in_flight is not None
         segment = stack_segments(self._answers(model, update, prefetch))
         self.in_flight = update + 1 if prefetch else None
+        rows = len(segment["rewards"])  # num_steps, or the longest segment with --balance
+        lengths = None if self.shared is None else segment["lengths"]
         frames = torch.from_numpy(segment["obs"]).to(device)
-        self.obs[:] = model.preprocess(frames.flatten(0, 1)).reshape(self.obs.shape)
+        obs = self.obs[:rows]
+        obs[:] = model.preprocess(frames.flatten(0, 1)).reshape(obs.shape)
         for buf, key in ((self.actions, "actions"), (self.logprobs, "logprobs"),
                          (self.values, "values")):
-            buf[:] = torch.from_numpy(segment[key]).to(device)
-        behaviour = self._learners_view(model) if lagged else None
+            buf[:rows] = torch.from_numpy(segment[key]).to(device)
+        behaviour = self._learners_view(model, rows) if lagged else None
         done = segment["terminated"] | segment["truncated"]
         self.dones[0] = self.next_done
-        self.dones[1:] = torch.from_numpy(done[:-1]).to(device)
+        self.dones[1:rows] = torch.from_numpy(done[:-1]).to(device)
         reward = normalize_segment(self.normalizer, options.reward_clip, segment["rewards"],
-                                   segment["terminated"], segment["truncated"])
+                                   segment["terminated"], segment["truncated"], lengths)
         if self.states is not None:  # the critic's values of the states the workers saw
-            self._critic_values(model, segment)
+            self._critic_values(model, segment, rows)
         reward += options.gamma * segment["final_values"]  # 0 where not truncated
-        self.rewards[:] = torch.as_tensor(reward, dtype=torch.float32, device=device)
+        self.rewards[:rows] = torch.as_tensor(reward, dtype=torch.float32, device=device)
         episodes = [(episode_return, distance, success)
                     for _, _, episode_return, distance, success in segment["episodes"]]
         self.next_obs = model.preprocess(torch.from_numpy(segment["next_obs"]).to(device))
-        self.next_done = torch.as_tensor(done[-1], dtype=torch.float32, device=device)
-        return self._rollout(episodes, behaviour)
+        last = done[-1] if lengths is None else done[lengths - 1, np.arange(len(lengths))]
+        self.next_done = torch.as_tensor(last, dtype=torch.float32, device=device)
+        return self._rollout(episodes, behaviour, rows, lengths)
 
-    def _learners_view(self, model: ActorCritic, chunk: int = 1024) -> torch.Tensor:
-        """For a rollout collected with older weights: ``logprobs`` and ``values`` become
-        the learner's (the image head's values; the critic's are set after this); the
-        collecting weights' log-probabilities are returned."""
+    def _learners_view(self, model: ActorCritic, rows: int, chunk: int = 1024) -> torch.Tensor:
+        """For a rollout (its first ``rows`` steps) collected with older weights:
+        ``logprobs`` and ``values`` become the learner's (the image head's values; the
+        critic's are set after this); the collecting weights' log-probabilities are
+        returned."""
         if self.behaviour_logprobs is None:
             self.behaviour_logprobs = torch.zeros_like(self.logprobs)
-        self.behaviour_logprobs.copy_(self.logprobs)
-        obs, actions = self.obs.flatten(0, 1), self.actions.flatten(0, 1)
-        logprobs, values = self.logprobs.view(-1), self.values.view(-1)
+        behaviour = self.behaviour_logprobs[:rows]
+        behaviour.copy_(self.logprobs[:rows])
+        obs, actions = self.obs[:rows].flatten(0, 1), self.actions[:rows].flatten(0, 1)
+        logprobs, values = self.logprobs[:rows].view(-1), self.values[:rows].view(-1)
         with torch.no_grad():
             for begin in range(0, len(obs), chunk):
                 part = slice(begin, begin + chunk)
                 mu, log_std, value = model.heads(obs[part])
                 logprobs[part] = normal_log_prob(actions[part], mu, log_std.exp()).sum(-1)
                 values[part] = value.squeeze(-1)
-        return self.behaviour_logprobs
+        return behaviour
 
     def close(self, interrupted: bool) -> None:
         # a call still unanswered (an error in the update with a rollout prefetched, a worker
         # lost mid-rollout): gymnasium's close would wait for it, or read a dead pipe again
         # and hide the first error; end the workers instead, as after Ctrl-C
-        close_vector_env(self.envs, interrupted or self.waiting)
+        try:
+            close_vector_env(self.envs, interrupted or self.waiting)
+        finally:
+            if self.shared is not None:
+                self.shared.close()
+                self.shared = None
 
-    def _critic_values(self, model: ActorCritic, segment: dict[str, Any]) -> None:
-        """Fill ``states``, ``values`` and ``next_state`` from the segment's states and set its
-        ``final_values`` to the critic's (the workers ran the actor alone)."""
+    def _critic_values(self, model: ActorCritic, segment: dict[str, Any], rows: int) -> None:
+        """Fill ``states``, ``values`` (their first ``rows`` steps) and ``next_state`` from
+        the segment's states and set its ``final_values`` to the critic's (the workers ran
+        the actor alone)."""
         assert self.states is not None
-        self.states[:] = self._states(segment["states"])
+        states, values = self.states[:rows], self.values[:rows]
+        states[:] = self._states(segment["states"])
         self.next_state = self._states(segment["next_state"])
         bootstrapped = segment["truncated"] & ~segment["terminated"]
         with torch.no_grad():
-            self.values[:] = model.critic_value(self.states.flatten(0, 1)).reshape(
-                self.values.shape)
+            values[:] = model.critic_value(states.flatten(0, 1)).reshape(values.shape)
             final = model.critic_value(self._states(segment["final_states"]).flatten(0, 1))
         segment["final_values"] = np.where(bootstrapped, final.cpu().numpy().reshape(
             bootstrapped.shape), 0.0)

@@ -34,6 +34,7 @@ import torch
 
 from jetbot_rt.train.hyperparams import ModelConfig
 from jetbot_rt.train.model import LOG_SQRT_2PI, ActorCritic
+from jetbot_rt.train.shared_steps import Share, SharedSteps
 from jetbot_rt.train.wrappers import CRITIC_STATE
 
 
@@ -57,6 +58,7 @@ class PolicySampler(gym.Wrapper):
         self._obs: np.ndarray | None = None
         self._state: np.ndarray | None = None
         """The privileged state of ``_obs`` (``info["critic_state"]``), when the env has one."""
+        self._shared: SharedSteps | None = None
         # Built with the env, as the worker starts (~0.3 s of CPU), not in the first rollout.
         if multiprocessing.parent_process() is not None:
             torch.set_num_threads(1)  # one core per worker
@@ -86,9 +88,11 @@ class PolicySampler(gym.Wrapper):
         return lambda frame: session.run(None, {"obs": frame.astype(np.float32), **feeds})
 
     def collect(self, weights: dict[str, np.ndarray], num_steps: int,
-                seed: tuple[int, int]) -> dict[str, Any]:
+                seed: tuple[int, int], share: Share | None = None) -> dict[str, Any]:
         """``num_steps`` steps with the policy of ``weights`` (arrays named as in the
-        network's ``state_dict``); ``seed``: (run seed, update).
+        network's ``state_dict``); ``seed``: (run seed, update). With ``share`` (PPO's
+        ``--balance``): at most ``num_steps``, ending once this worker has taken
+        ``share.min_steps`` and the workers together ``share.total`` (``shared_steps``).
 
         Returns arrays over the steps -- ``obs`` (the frame the action was chosen on),
         ``actions``, ``logprobs``, ``values``, ``rewards`` (the wrapped env's, before
@@ -114,6 +118,8 @@ class PolicySampler(gym.Wrapper):
         if state is not None:
             states = np.empty((num_steps, *state.shape), dtype=np.float32)
             final_states = np.zeros_like(states)
+        counts = None if share is None else self._counts(share)[share.bank]
+        length = num_steps
         for t in range(num_steps):
             obs[t] = self._obs
             if state is not None:
@@ -138,22 +144,56 @@ class PolicySampler(gym.Wrapper):
             self._obs = next_obs
             if state is not None:
                 state = self._state = info[CRITIC_STATE]
+            if counts is not None:
+                counts[self.index] = t + 1
+                if t + 1 >= share.min_steps and counts.sum() >= share.total:
+                    length = t + 1
+                    break
         segment = {"obs": obs, "actions": actions, "logprobs": logprobs, "values": values,
                    "rewards": rewards, "terminated": terminated, "truncated": truncated,
-                   "final_values": final_values, "next_obs": np.array(self._obs),
-                   "episodes": episodes}
+                   "final_values": final_values}
         if state is not None:
-            segment.update(states=states, final_states=final_states, next_state=np.array(state))
+            segment.update(states=states, final_states=final_states)
+        segment = {key: steps[:length] for key, steps in segment.items()}
+        segment.update(next_obs=np.array(self._obs), episodes=episodes)
+        if state is not None:
+            segment["next_state"] = np.array(state)
         return segment
+
+    def close(self) -> None:
+        if self._shared is not None:
+            self._shared.close()
+            self._shared = None
+        super().close()
+
+    def _counts(self, share: Share) -> np.ndarray:
+        """The balanced rollouts' step counters (``[bank, worker]``), attached once."""
+        if self._shared is None or self._shared.name != share.name:
+            if self._shared is not None:
+                self._shared.close()
+            self._shared = SharedSteps.attach(share.name, share.workers)
+        return self._shared.counts
 
 
 def stack_segments(segments: tuple[dict[str, Any], ...]) -> dict[str, Any]:
     """The envs' segments as ``[num_steps, num_envs, ...]`` arrays (``next_obs`` and
     ``next_state``: ``[num_envs, ...]``); ``episodes`` as (step, env, return, distance,
-    success) in the order a vector env would have reported them."""
+    success) in the order a vector env would have reported them; ``lengths``, each env's
+    steps. Segments of different lengths (``--balance``) are padded with zeros to the
+    longest."""
     per_env = [k for k in ("next_obs", "next_state") if k in segments[0]]
     keys = [k for k in segments[0] if k not in (*per_env, "episodes")]
-    stacked = {k: np.stack([s[k] for s in segments], axis=1) for k in keys}
+    lengths = np.array([len(s["rewards"]) for s in segments])
+    longest = int(lengths.max())
+
+    def padded(steps: np.ndarray) -> np.ndarray:
+        if len(steps) == longest:
+            return steps
+        pad = np.zeros((longest - len(steps), *steps.shape[1:]), dtype=steps.dtype)
+        return np.concatenate([steps, pad])
+
+    stacked = {k: np.stack([padded(s[k]) for s in segments], axis=1) for k in keys}
+    stacked["lengths"] = lengths
     stacked.update({k: np.stack([s[k] for s in segments]) for k in per_env})
     stacked["episodes"] = sorted((t, i, *rest) for i, s in enumerate(segments)
                                  for t, *rest in s["episodes"])
@@ -161,12 +201,25 @@ def stack_segments(segments: tuple[dict[str, Any], ...]) -> dict[str, Any]:
 
 
 def normalize_segment(normalizer: Any, clip: float, rewards: np.ndarray,
-                      terminated: np.ndarray, truncated: np.ndarray) -> np.ndarray:
+                      terminated: np.ndarray, truncated: np.ndarray,
+                      lengths: np.ndarray | None = None) -> np.ndarray:
     """``[num_steps, num_envs]`` rewards as ``ClipReward(NormalizeReward(envs), -clip, clip)``
     returns them step by step with SAME_STEP autoreset (Gymnasium 1.x), updating the same
-    state (``normalizer.accumulated_reward``, ``normalizer.return_rms``)."""
-    out = np.empty_like(rewards)
+    state (``normalizer.accumulated_reward``, ``normalizer.return_rms``). With ``lengths``
+    (each env's steps, the rest padding) step t is of the envs that have it."""
+    out = np.zeros_like(rewards)
     returns = normalizer.accumulated_reward
+    if lengths is not None and (lengths < len(rewards)).any():
+        for t in range(len(rewards)):
+            envs = np.flatnonzero(t < lengths)
+            stepped = returns[envs] * normalizer.gamma * (1 - terminated[t, envs]) + \
+                rewards[t, envs]
+            if normalizer.update_running_mean:
+                normalizer.return_rms.update(stepped)
+            returns[envs] = np.where(terminated[t, envs] | truncated[t, envs], 0, stepped)
+            scaled = rewards[t, envs] / np.sqrt(normalizer.return_rms.var + normalizer.epsilon)
+            out[t, envs] = np.clip(scaled, -clip, clip)
+        return out
     for t in range(len(rewards)):
         returns[:] = returns * normalizer.gamma * (1 - terminated[t]) + rewards[t]
         if normalizer.update_running_mean:
