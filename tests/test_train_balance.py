@@ -176,3 +176,49 @@ def test_balance_where_it_cannot_run_is_one_line_and_exit_2(tmp_path, capsys):
     assert code == 2 and len(lines) == 1, lines
     assert "--balance needs the policy in the env workers" in lines[0]
     assert not out.exists()
+
+
+def test_a_balanced_overlapped_run_ends_with_nothing_in_flight(tmp_path, monkeypatch):
+    """Balanced rollouts overshoot num_envs * num_steps; a prefetch planned on that size
+    left one in flight at the end of a normal run, whose workers were then killed (their
+    clean-up skipped) as after Ctrl-C."""
+    from jetbot_rt.train.rollout import WorkerRollouts
+
+    at_close = []
+    close = WorkerRollouts.close
+
+    def spy(self, interrupted):
+        at_close.append((interrupted, self.waiting, self.in_flight))
+        return close(self, interrupted)
+
+    monkeypatch.setattr(WorkerRollouts, "close", spy)
+    summary = ppo.train(PPOArgs(num_envs=4, num_steps=16, total_timesteps=134,
+                                out=str(tmp_path), update_epochs=1, progress=False,
+                                balance=True, overlap=True))
+    assert summary["global_step"] >= 134
+    assert at_close == [(False, False, None)]
+
+
+def test_a_stop_while_the_run_sets_up_ends_the_workers_and_frees_the_counters(
+        tmp_path, monkeypatch):
+    import multiprocessing
+
+    names = []
+    make_source = ppo.make_rollout_source
+
+    def keep(*args):
+        source = make_source(*args)
+        names.append(source.shared.name)
+        return source
+
+    def interrupted(directory):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ppo, "make_rollout_source", keep)
+    monkeypatch.setattr(ppo, "_tensorboard", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        ppo.train(PPOArgs(num_envs=2, num_steps=16, total_timesteps=64, out=str(tmp_path),
+                          progress=False, balance=True))
+    assert multiprocessing.active_children() == []
+    with pytest.raises(FileNotFoundError):
+        shared_memory.SharedMemory(name=names[0])

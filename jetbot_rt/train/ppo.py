@@ -33,7 +33,7 @@ from jetbot_rt.train.env import max_speed_of
 from jetbot_rt.train.hyperparams import PPOArgs, critic_config
 from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.ray_workers import WorkersLost
-from jetbot_rt.train.rollout import Rollout, RolloutSource, make_rollout_source
+from jetbot_rt.train.rollout import BALANCE_CAP, Rollout, RolloutSource, make_rollout_source
 from jetbot_rt.train.run_dir import Interrupted, Panel, Progress, RunDirectory, starting_model
 from jetbot_rt.train.run_end import close_workers, interrupt_noted
 
@@ -242,14 +242,19 @@ class _Run:
         self.rng = np.random.default_rng(options.seed + self.progress.update)
         self.max_speed = max_speed_of(options.config, load_task(options.task))
         self.source = make_rollout_source(options, self.model, self.device)
-        self.schedule = Schedule.of(options, self.run, resumed is not None, self.progress.update)
-        if self.schedule is not None:
-            send(self.source.envs, self.schedule.difficulty)
-        if resumed is not None and resumed.reward_rms is not None:
-            rms, state = self.source.normalizer.return_rms, resumed.reward_rms
-            rms.mean, rms.var, rms.count = (np.float64(state["mean"]),
-                                            np.float64(state["var"]), float(state["count"]))
-        self.writer = _tensorboard(self.run.inside())
+        try:  # train's clean-up starts after this returns: until then, end the workers here
+            self.schedule = Schedule.of(options, self.run, resumed is not None,
+                                        self.progress.update)
+            if self.schedule is not None:
+                send(self.source.envs, self.schedule.difficulty)
+            if resumed is not None and resumed.reward_rms is not None:
+                rms, state = self.source.normalizer.return_rms, resumed.reward_rms
+                rms.mean, rms.var, rms.count = (np.float64(state["mean"]),
+                                                np.float64(state["var"]), float(state["count"]))
+            self.writer = _tensorboard(self.run.inside())
+        except BaseException:
+            self.source.close(True)
+            raise
         self.episodes = EpisodeStats()
         self.steps_per_s: float | None = None
 
@@ -261,9 +266,11 @@ class _Run:
             frac = max(0.0, 1.0 - progress.global_step / options.total_timesteps)
             self.optimizer.param_groups[0]["lr"] = frac * options.learning_rate
         # With overlap the workers collect the next rollout during this update, unless
-        # this is the last: nothing may be left in flight at the end.
-        overlapping = options.overlap and (progress.global_step + options.num_envs
-                                           * options.num_steps < options.total_timesteps)
+        # this may be the last: nothing may be left in flight at the end. A balanced rollout
+        # may take up to BALANCE_CAP times its steps (the last one or two then do not overlap).
+        longest = options.num_envs * options.num_steps * (BALANCE_CAP if options.balance else 1)
+        overlapping = options.overlap and (progress.global_step + longest
+                                           < options.total_timesteps)
         rollout = self.source.collect(model, update, prefetch=overlapping)
         self.episodes.add(rollout.episodes)
         with torch.no_grad():

@@ -65,7 +65,10 @@ class SharedSteps:
         return Share(self.name, self.workers, bank, total, min_steps)
 
     def close(self) -> None:
-        del self.counts  # the buffer is exported while an array views it
+        """Unmaps the counters (and removes them, the learner's): an array still viewing
+        them would then read unmapped memory, so none outlives its call (``collect``'s view
+        is a local)."""
+        del self.counts
         self.memory.close()
         if self.owner:
             self.memory.unlink()
