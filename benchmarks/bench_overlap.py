@@ -14,7 +14,9 @@ Writes overlap[-TAG].json and .md to --out. Each PPO run is the task's default r
 (``steps_per_s`` of the last metrics row: from the first rollout's start, worker start-up and
 export left out, as the simulator's figure leaves out its start-up). Each overlapped run
 also gives the median time from the first worker's answer read to the last's, per rollout
-(``spread_ms``: what the barrier keeps the first workers waiting).
+(``spread_ms``: what the barrier keeps the first workers waiting), and every run where the
+learner's time goes: the period between updates, its wait for the workers' answers and the
+update (``period_ms``, ``gather_ms``, ``update_ms``).
 """
 
 from __future__ import annotations
@@ -39,18 +41,28 @@ ARM_TITLES = {"sync": "PPO sync", "barrier": "--overlap, one barrier", "overlap"
 
 
 def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str) -> dict:
-    from jetbot_rt.train import rollout
+    from jetbot_rt.train import ppo, rollout
     from jetbot_rt.train.hyperparams import ppo_args
     from jetbot_rt.train.ppo import train
 
     overlap, pipelined, balance = ARMS[arm]
     spreads: list[float] = []
-    gather = rollout.WorkerCalls.gather
+    waits: list[float] = []
+    updates: list[float] = []
+    gather, update = rollout.WorkerCalls.gather, ppo.ppo_update
 
     def timed(calls, *a, **k):
+        began = time.perf_counter()
         answers = gather(calls, *a, **k)
+        waits.append(time.perf_counter() - began)
         spreads.append(calls.last_spread)
         return answers
+
+    def timed_update(*a, **k):
+        began = time.perf_counter()
+        stats = update(*a, **k)  # its losses' .item() wait for the GPU
+        updates.append(time.perf_counter() - began)
+        return stats
 
     with tempfile.TemporaryDirectory() as out:
         args = ppo_args(task, {"total_timesteps": steps, "num_envs": num_envs, "out": out,
@@ -58,15 +70,25 @@ def ppo_steps_per_s(task: str, num_envs: int, steps: int, arm: str, device: str)
                                "balance": balance})
         rollout.WorkerRollouts.pipelined = pipelined
         rollout.WorkerCalls.gather = timed
+        ppo.ppo_update = timed_update
         start = time.perf_counter()
         try:
             summary = train(args)
         finally:
             rollout.WorkerRollouts.pipelined = True
             rollout.WorkerCalls.gather = gather
+            ppo.ppo_update = update
         wall = time.perf_counter() - start
-    spread = round(1000 * statistics.median(spreads), 1) if spreads else None
-    return {"arm": arm, "timesteps": summary["global_step"], "spread_ms": spread,
+
+    def median_ms(seconds: list[float]) -> float | None:
+        return round(1000 * statistics.median(seconds), 1) if seconds else None
+
+    # a rollout's period against what the learner spends waiting for the workers' answers
+    # and updating: a wait near 0 with an update near the period means the learner paces
+    # the run, not the workers
+    return {"arm": arm, "timesteps": summary["global_step"], "spread_ms": median_ms(spreads),
+            "gather_ms": median_ms(waits), "update_ms": median_ms(updates),
+            "period_ms": round(1000 * summary["wall_s"] / max(summary["updates"], 1), 1),
             "steps_per_s": summary["steps_per_s"], "wall_s_with_startup": round(wall, 1),
             "update_epochs": args.update_epochs, "num_minibatches": args.num_minibatches,
             "num_steps": args.num_steps}
@@ -101,6 +123,17 @@ def markdown(result: dict) -> str:
                              if row[a]["spread_ms"] is not None)
         lines.append(f"| {row['task']} | {total} | "
                      + " | ".join(cell(row[a], total) for a in arms) + f" | {spreads} |")
+    lines += ["", "Where a rollout's time goes in the learner, medians over a run's rollouts "
+              "(ms; the median run of each arm): the period between updates, the wait for "
+              "the workers' answers (the overlapped arms) and the update.", "",
+              "| task | arm | period | wait for answers | update |",
+              "| --- | --- | --- | --- | --- |"]
+    for row in result["tasks"]:
+        for a in arms:
+            runs = sorted(row[a]["detail"], key=lambda r: r["steps_per_s"])
+            run = runs[len(runs) // 2]
+            lines.append(f"| {row['task']} | {ARM_TITLES[a]} | {run.get('period_ms')} | "
+                         f"{run.get('gather_ms')} | {run.get('update_ms')} |")
     return "\n".join(lines) + "\n"
 
 
