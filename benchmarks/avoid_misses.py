@@ -12,9 +12,8 @@ Prints one line a miss and the counts; the replay uses the evaluation's own epis
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
+from jetbot_rt.config.safe_file import read_json
 from jetbot_rt.config.sections import load_config
 from jetbot_rt.train.env import JetbotEnv
 from jetbot_rt.train.evaluate import load_policy
@@ -37,7 +36,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=100, help="the evaluation's count")
     parser.add_argument("--config", default=None)
     args = parser.parse_args()
-    report = json.loads(Path(args.eval).read_text())
+    report = read_json(args.eval, "evaluation", 1 << 20)
     first = report["seed"]
     misses = sorted(set(range(first, first + args.episodes)) - set(report["successes"]))
     config = load_config(args.config)

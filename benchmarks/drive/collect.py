@@ -18,29 +18,35 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from versions import cpu_model, stamp
 
+from jetbot_rt.config.safe_file import read_json
+from jetbot_rt.errors import UsageError
+from jetbot_rt.recording.reader import Recording
+
+JSON_LIMIT = 1 << 20
+"""bytes; a summary or an evaluation is a few kB."""
+
 
 def recording(path: Path) -> dict:
-    summary = json.loads((path / "summary.json").read_text())
-    human = episodes = takeovers = 0
-    with open(path / "ticks.jsonl", encoding="utf-8") as ticks:
-        for line in ticks:
-            record = json.loads(line)
-            human += record.get("driver") == "human" and record.get("human") is not None
-            episodes += record.get("event") == "episode_end"
-            takeovers += record.get("event") == "takeover"
-    run = summary["run"]
-    return {"ticks": run["ticks"], "minutes": round(run["ticks"] / 30 / 60, 2),
-            "human_ticks": human, "episodes": episodes, "takeovers": takeovers,
-            "achieved_hz": run["achieved_hz"],
-            "overruns": run["overruns"], "motors_confirmed_zero": run["motors_confirmed_zero"]}
+    """A recording's length, human ticks, episodes and takeovers, read as ``finetune`` reads
+    it (the recording reader: regular files, size caps, every record checked)."""
+    found = Recording.open(path)
+    ticks = found.ticks
+    run = found.summary.get("run", {})
+    return {"ticks": len(ticks), "minutes": round(len(ticks) / 30 / 60, 2),
+            "human_ticks": sum(t.get("driver") == "human" and t.get("human") is not None
+                               for t in ticks),
+            "episodes": sum(e["event"] == "episode_end" for e in found.events),
+            "takeovers": sum(e["event"] == "takeover" for e in found.events),
+            "achieved_hz": run.get("achieved_hz"), "overruns": run.get("overruns"),
+            "motors_confirmed_zero": run.get("motors_confirmed_zero")}
 
 
 def evaluation(path: Path) -> dict | None:
     """The evaluation's figures; None for one still being written."""
     try:
-        report = json.loads(path.read_text())
-    except json.JSONDecodeError:
-        print(f"{path.name}: not a finished evaluation, left out", file=sys.stderr)
+        report = read_json(path, "evaluation", JSON_LIMIT)
+    except UsageError as exc:
+        print(f"{exc}: left out", file=sys.stderr)
         return None
     return {key: report.get(key) for key in ("success_rate", "mean_final_distance", "ablate",
                                              "wall_s", "seed")}
@@ -69,7 +75,7 @@ def main() -> None:
                  "--ablate blank; bundled_seek: the seek.onnx bundled at the run's commit",
         "recordings": {p.name: recording(p) for p in sorted(work.iterdir())
                        if (p / "summary.json").is_file()},
-        "finetunes": {p.name: json.loads((p / "finetune.json").read_text())
+        "finetunes": {p.name: read_json(p / "finetune.json", "fine-tune summary", JSON_LIMIT)
                       for p in sorted(work.glob("ft_*")) if (p / "finetune.json").is_file()},
         "evaluations": {},
     }

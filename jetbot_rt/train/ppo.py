@@ -53,8 +53,6 @@ def gae(rewards: torch.Tensor, values: torch.Tensor, dones: torch.Tensor,
     the episode ended before step t); the advantages and the returns (advantage + value).
     ``lengths`` (``--balance``): each env's steps; ``next_value`` and ``next_done`` follow an
     env's last one, and the padding below it gets 0."""
-    if lengths is not None:
-        return _ragged_gae(rewards, values, dones, next_value, next_done, gamma, lam, lengths)
     num_steps = rewards.shape[0]
     advantages = torch.zeros_like(rewards)
     last_gae = torch.zeros(rewards.shape[1], device=rewards.device)
@@ -63,28 +61,14 @@ def gae(rewards: torch.Tensor, values: torch.Tensor, dones: torch.Tensor,
             not_done, following = 1.0 - next_done, next_value
         else:
             not_done, following = 1.0 - dones[t + 1], values[t + 1]
+            if lengths is not None:  # an env's last step is followed by its next_value
+                last = lengths == t + 1
+                not_done = torch.where(last, 1.0 - next_done, not_done)
+                following = torch.where(last, next_value, following)
         delta = rewards[t] + gamma * following * not_done - values[t]
         last_gae = delta + gamma * lam * not_done * last_gae
-        advantages[t] = last_gae
-    return advantages, advantages + values
-
-
-def _ragged_gae(rewards: torch.Tensor, values: torch.Tensor, dones: torch.Tensor,
-                next_value: torch.Tensor, next_done: torch.Tensor, gamma: float, lam: float,
-                lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    num_steps = rewards.shape[0]
-    advantages = torch.zeros_like(rewards)
-    last_gae = torch.zeros(rewards.shape[1], device=rewards.device)
-    for t in reversed(range(num_steps)):
-        last = lengths == t + 1
-        if t == num_steps - 1:
-            following, not_done = next_value, 1.0 - next_done
-        else:
-            following = torch.where(last, next_value, values[t + 1])
-            not_done = torch.where(last, 1.0 - next_done, 1.0 - dones[t + 1])
-        delta = rewards[t] + gamma * following * not_done - values[t]
-        last_gae = torch.where(t < lengths, delta + gamma * lam * not_done * last_gae,
-                               torch.zeros_like(last_gae))
+        if lengths is not None:
+            last_gae = torch.where(t < lengths, last_gae, torch.zeros_like(last_gae))
         advantages[t] = last_gae
     return advantages, advantages + values
 

@@ -209,24 +209,15 @@ def normalize_segment(normalizer: Any, clip: float, rewards: np.ndarray,
     (each env's steps, the rest padding) step t is of the envs that have it."""
     out = np.zeros_like(rewards)
     returns = normalizer.accumulated_reward
-    if lengths is not None and (lengths < len(rewards)).any():
-        for t in range(len(rewards)):
-            envs = np.flatnonzero(t < lengths)
-            stepped = returns[envs] * normalizer.gamma * (1 - terminated[t, envs]) + \
-                rewards[t, envs]
-            if normalizer.update_running_mean:
-                normalizer.return_rms.update(stepped)
-            returns[envs] = np.where(terminated[t, envs] | truncated[t, envs], 0, stepped)
-            scaled = rewards[t, envs] / np.sqrt(normalizer.return_rms.var + normalizer.epsilon)
-            out[t, envs] = np.clip(scaled, -clip, clip)
-        return out
     for t in range(len(rewards)):
-        returns[:] = returns * normalizer.gamma * (1 - terminated[t]) + rewards[t]
-        if normalizer.update_running_mean:
-            normalizer.return_rms.update(returns)
-        returns[terminated[t] | truncated[t]] = 0
-        scaled = rewards[t] / np.sqrt(normalizer.return_rms.var + normalizer.epsilon)
-        out[t] = np.clip(scaled, -clip, clip)
+        envs = slice(None) if lengths is None else np.flatnonzero(t < lengths)
+        returns[envs] = returns[envs] * normalizer.gamma * (1 - terminated[t, envs]) + \
+            rewards[t, envs]
+        if normalizer.update_running_mean:  # the returns as stored (the wrapper's dtype)
+            normalizer.return_rms.update(returns[envs])
+        returns[envs] = np.where(terminated[t, envs] | truncated[t, envs], 0, returns[envs])
+        scaled = rewards[t, envs] / np.sqrt(normalizer.return_rms.var + normalizer.epsilon)
+        out[t, envs] = np.clip(scaled, -clip, clip)
     return out
 
 
