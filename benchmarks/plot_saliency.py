@@ -10,7 +10,8 @@ the mean over the patches covering it of ``|mu_left - mu_left'| + |mu_right - mu
 the change of both wheel commands. Everything runs through onnxruntime (the runtime's
 ``OnnxPolicy``: any model the runtime takes, no torch). Each tile names the condition, the
 commands ``mu`` and the share of the map's mass within half a patch of the frame's red pixels
-(``near red``, against the share of the frame that is).
+(``near red``, against the share of the frame that is). The tiles' figures, with the
+versions, go to benchmarks/results/saliency/OUT_STEM.json.
 
 Run:
   .venv/bin/python benchmarks/plot_saliency.py                        # the bundled seek.onnx
@@ -26,6 +27,7 @@ training randomization the randomized tiles draw from.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from pathlib import Path
@@ -37,6 +39,7 @@ import numpy as np
 from jetbot_rt.errors import UsageError
 
 HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "saliency"
 IMAGES = HERE.parent / "docs" / "images"
 RED_FLOOR = 0.3
 """More of the frame than this near red: the floor or a rug is red too, the share says nothing."""
@@ -184,6 +187,7 @@ def plot(args: argparse.Namespace, policy: Any, frames: list[tuple[str, np.ndarr
         ax.set_xticks([])
         ax.set_yticks([])
         ax.axis("off")
+    rows_out: list[dict[str, Any]] = []
     for i, (name, image) in enumerate(frames):
         mu, heat = occlusion_map(policy, image, args.patch, args.stride)
         frame = policy.fit(image)
@@ -200,6 +204,11 @@ def plot(args: argparse.Namespace, policy: Any, frames: list[tuple[str, np.ndarr
         share = (f"{100 * on_red:.0f} % of the map\nnear red ({100 * red.mean():.0f} % of the px)"
                  if red.mean() < RED_FLOOR else "\n(red floor: no share)")
         right.set_title(f"peak {peak:.2f}; {share}", fontsize=7)
+        rows_out.append({"tile": name, "mu": [round(float(m), 3) for m in mu],
+                         "peak": round(peak, 4),
+                         "near_red_share": (round(float(on_red), 3)
+                                            if red.mean() < RED_FLOOR else None),
+                         "red_pixel_share": round(float(red.mean()), 4)})
         print(f"{name}: mu {mu[0]:+.2f} {mu[1]:+.2f}, peak {peak:.3f}, near red "
               f"{100 * on_red:.0f} % of the map ({100 * red.mean():.1f} % of the px)",
               flush=True)
@@ -209,7 +218,15 @@ def plot(args: argparse.Namespace, policy: Any, frames: list[tuple[str, np.ndarr
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=100)
-    print(args.out)
+    from versions import stamp
+
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    record = RESULTS / f"{args.out.stem}.json"
+    record.write_text(json.dumps(stamp({
+        "command": "python benchmarks/plot_saliency.py " + " ".join(sys.argv[1:]),
+        "policy": args.policy_shown, "config": str(args.config) if args.config else None,
+        "patch": args.patch, "stride": args.stride, "tiles": rows_out}), indent=2) + "\n")
+    print(args.out, record)
 
 
 def main() -> int:

@@ -1,10 +1,12 @@
 """The seed's real failure, drawn: the bundled forward policy and the bundled seek policy on
 the forward task's scene (a red block 0.9 m straight ahead, nominal start), with the right
 wheel 15 % weak (``[sim] wheel_gain = [1.0, 0.85]``), from above. Writes
-docs/images/weak_wheel.png. Run: .venv/bin/python benchmarks/plot_weak_wheel.py"""
+docs/images/weak_wheel.png and its legend's figures, with the versions, to
+benchmarks/results/weak_wheel.json. Run: .venv/bin/python benchmarks/plot_weak_wheel.py"""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import matplotlib
@@ -12,6 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from versions import stamp
 
 from jetbot_rt.config.sections import from_dict
 from jetbot_rt.runtime.policy import bundled_policy_path
@@ -19,6 +22,7 @@ from jetbot_rt.train.env import JetbotEnv
 from jetbot_rt.train.evaluate import load_policy
 
 OUT = Path(__file__).resolve().parent.parent / "docs" / "images" / "weak_wheel.png"
+RESULTS = Path(__file__).resolve().parent / "results" / "weak_wheel.json"
 WEAK = [1.0, 0.85]
 
 
@@ -42,12 +46,16 @@ def trajectory(policy_task: str, gain: list[float]) -> tuple[np.ndarray, dict]:
 
 def main() -> None:
     fig, ax = plt.subplots(figsize=(7, 5))
+    runs = []
     for task, gain, style in [("forward", [1.0, 1.0], ":"), ("forward", WEAK, "-"),
                               ("seek", WEAK, "-")]:
         path, info = trajectory(task, gain)
         label = (f"{task}.onnx, wheel_gain {gain}: final distance {info['distance']:.2f} m, "
                  f"{'success' if info['distance'] < 0.15 else 'miss'}")
         ax.plot(path[:, 0], path[:, 1], style, lw=2, label=label)
+        runs.append({"policy": f"{task}.onnx", "wheel_gain": gain,
+                     "final_distance_m": round(float(info["distance"]), 3),
+                     "success": bool(info["distance"] < 0.15)})
     ax.add_patch(plt.Rectangle((0.275, -0.025), 0.05, 0.05, color="red"))
     ax.add_patch(plt.Circle((0.3, 0.0), 0.15, fill=False, ls="--", color="grey"))
     ax.plot([-0.6], [0.0], "ko")
@@ -62,7 +70,10 @@ def main() -> None:
     fig.tight_layout()
     OUT.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(OUT, dpi=100, bbox_inches="tight")
-    print(f"wrote {OUT}")
+    RESULTS.write_text(json.dumps(stamp({
+        "command": "python benchmarks/plot_weak_wheel.py", "scene": "forward, seed 0, "
+        "nominal start, randomization off", "runs": runs}), indent=2) + "\n")
+    print(f"wrote {OUT} and {RESULTS}")
 
 
 if __name__ == "__main__":

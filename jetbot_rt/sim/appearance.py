@@ -71,8 +71,9 @@ def light_kwargs(sim: SimConfig) -> dict[str, Any]:
         "lightAmbientCoeff": AMBIENT * k,
         "lightDiffuseCoeff": DIFFUSE * k,
         "lightSpecularCoeff": SPECULAR * k,
-        # TinyRenderer's shadow map darkens almost nothing (0.14 grey levels measured over a
-        # frame with a 40 cm box in it): sim/looks.py bakes the shadows into the floor instead
+        # TinyRenderer's shadow map darkens little (0.55 grey levels over a frame with a 40 cm
+        # box in it) at 1.7x the render (benchmarks/bench_sim_choices.py): sim/looks.py bakes
+        # the shadows into the floor instead
         "shadow": 0,
     }
     if [float(c) for c in sim.light_color] != [1.0, 1.0, 1.0]:

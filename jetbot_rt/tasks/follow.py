@@ -229,9 +229,9 @@ class FollowExpert:
     lookahead = 0.15
     """m along the centre line (a class constant: the task computes the target with it).
     Pure pursuit cuts a bend's inside by more the farther it looks: at 0.25 m the expert ran
-    at a median 4.1 cm from the centre line over 30 randomized episodes (its largest offset
-    9.9 cm of the 12 cm a student may stray before it has left the track); at 0.15 m 1.7 cm
-    (largest 5.9 cm). With the left wheel 15 % weak: 4.9 and 1.7 cm."""
+    2.0 cm from the centre line, at 0.15 m 0.8 cm (the median of 100 randomized episodes'
+    medians; ``benchmarks/bench_expert_choices.py``), of the 12 cm a student may stray
+    before it has left the track."""
     min_forward: float = 0.8
     """The forward command: above the randomized dead-band's share (0.3 duty of 0.6)."""
     half_track: float = 0.055

@@ -32,7 +32,7 @@ class FrameState:
     Why: a label on the true state *now* asks the student to see through the camera's
     latency, which one frame cannot; labels of the state the frame shows are a function of
     the frame, and the expert driving on them is the controller the student can become (seek
-    with 150 ms motor plus 100 ms camera latency: 38 of 40 episodes; docs/TRAINING.md)."""
+    with 150 ms motor plus 100 ms camera latency: 99 of 100 episodes; docs/TRAINING.md)."""
 
     def __init__(self, reset_info: dict[str, Any], period: float | None) -> None:
         """``period``: the control period (s); None: no lag, the state at the frame's
