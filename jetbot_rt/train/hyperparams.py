@@ -352,6 +352,12 @@ class PPOArgs(CurriculumOptions):
     """Value loss coefficient."""
     max_grad_norm: float = 0.5
     """Gradient norm clip."""
+    augment: float = 0.0
+    """DrAC's weight (Raileanu et al. 2021; 0: off; 0.1 is DrAC's default): each minibatch's
+    frames are also seen shifted by up to 4 pixels either way (the edge pixels repeated), and the
+    loss adds ``augment`` times how far the policy's mean (and the image critic's value)
+    moves from the unshifted frame's. The surrogate itself stays on the collected frames, so
+    PPO's ratio keeps its meaning. Against over-fitting the scenes trained on."""
     reward_transform: str = "symlog"
     """"symlog": learn from sign(r) * ln(1 + |r|) of the task reward (then shaping, scale
     and clip); "none": the task reward as is. The forward reward spans -27 .. 1e4+;
@@ -433,6 +439,8 @@ class PPOArgs(CurriculumOptions):
                                          f"{self.workers}")
         if self.ray_max_restarts < 0:
             raise OptionError("ray_max_restarts", f"must be >= 0, got {self.ray_max_restarts}")
+        if self.augment < 0:
+            raise OptionError("augment", f"must be >= 0, got {self.augment}")
         if self.reward_transform not in REWARD_TRANSFORMS:
             raise OptionError("reward_transform", f"must be one of "
                                                   f"{', '.join(REWARD_TRANSFORMS)}, got "

@@ -27,6 +27,7 @@ import torch
 from tqdm import tqdm
 
 from jetbot_rt.tasks import load_task
+from jetbot_rt.train.augment import random_shift
 from jetbot_rt.train.curriculum import Schedule, curve, metric_fields, send
 from jetbot_rt.train.device import resolve_device
 from jetbot_rt.train.env import max_speed_of
@@ -137,6 +138,9 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
             policy_loss = surrogate.mean()
             value_loss = 0.5 * ((new_value - returns[mb]) ** 2).mean()
             loss = policy_loss - options.ent_coef * entropy + options.vf_coef * value_loss
+            if options.augment > 0:
+                loss = loss + options.augment * shift_penalty(model, obs[mb], dist, new_value,
+                                                              states is None, rng)
             optimizer.zero_grad()
             loss.backward()
             for parameters in clipped:
@@ -144,6 +148,20 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
             optimizer.step()
     return UpdateStats(policy_loss.item(), value_loss.item(), entropy.item(), approx_kl.item(),
                        float(np.mean(clipfracs)))
+
+
+def shift_penalty(model: ActorCritic, frames: torch.Tensor, dist: torch.distributions.Normal,
+                  value: torch.Tensor, image_critic: bool, rng: np.random.Generator
+                  ) -> torch.Tensor:
+    """DrAC's regulariser: KL(pi(.|frame) || pi(.|shifted frame)) with the first held fixed
+    (one std for both: the means' squared distance over twice its variance), plus the image
+    critic's squared value change (none with the asymmetric critic: its state is not
+    shifted)."""
+    mu, _, shifted_value = model.heads(random_shift(frames, rng))
+    penalty = ((mu - dist.mean.detach()) ** 2 / (2 * dist.stddev.detach() ** 2)).sum(-1).mean()
+    if image_critic:
+        penalty = penalty + ((shifted_value.squeeze(-1) - value.detach()) ** 2).mean()
+    return penalty
 
 
 class EpisodeStats:

@@ -1,0 +1,77 @@
+"""PPO's ``--augment`` (DrAC): the random shift of a frame, and the regulariser that makes the
+policy's mean and the image critic's value the same on a frame and its shifted copy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from jetbot_rt.train import ppo
+from jetbot_rt.train.augment import random_shift
+from jetbot_rt.train.hyperparams import ModelConfig, OptionError, PPOArgs
+from jetbot_rt.train.model import ActorCritic, normal_log_prob
+from jetbot_rt.train.rollout import Rollout
+
+SIZE = 16
+
+
+def test_a_shift_moves_every_pixel_by_its_offset_and_repeats_the_edge():
+    frames = torch.arange(2 * 3 * SIZE * SIZE, dtype=torch.float32).reshape(2, 3, SIZE, SIZE)
+    offsets = np.random.default_rng(5).integers(0, 2 * 4 + 1, size=(2, 2))
+    shifted = random_shift(frames, np.random.default_rng(5), shift=4)
+    for n in range(2):
+        dy, dx = (int(o) - 4 for o in offsets[n])
+        for y, x in [(0, 0), (7, 9), (SIZE - 1, SIZE - 1), (3, SIZE - 2)]:
+            source = frames[n, :, min(max(y + dy, 0), SIZE - 1), min(max(x + dx, 0), SIZE - 1)]
+            assert torch.equal(shifted[n, :, y, x], source)
+    assert not torch.equal(shifted, frames)  # the draw (seed 5) moves at least one frame
+
+
+def test_no_shift_is_the_frame_and_a_draw_is_the_same_for_the_same_seed():
+    frames = torch.rand(4, 3, SIZE, SIZE)
+    assert torch.equal(random_shift(frames, np.random.default_rng(0), shift=0), frames)
+    assert torch.equal(random_shift(frames, np.random.default_rng(3)),
+                       random_shift(frames, np.random.default_rng(3)))
+
+
+def _rollout(model: ActorCritic) -> Rollout:
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.randint(0, 256, (32, SIZE, SIZE, 3), generator=gen).float()
+    with torch.no_grad():
+        obs = model.preprocess(frames)
+        mu, log_std, value = model.heads(obs)
+        actions = mu + 0.3 * torch.randn(mu.shape, generator=gen)
+        logprobs = normal_log_prob(actions, mu, log_std.exp()).sum(-1)
+    shape = (16, 2)
+    return Rollout(obs.reshape(16, 2, *obs.shape[1:]), actions.reshape(16, 2, 2),
+                   logprobs.reshape(shape), torch.randn(shape, generator=gen),
+                   torch.zeros(shape), value.reshape(shape), obs[:2], torch.zeros(2), [])
+
+
+def _shift_gap(augment: float) -> float:
+    """How far the policy's mean moves under shifts of the rollout's frames after ten updates
+    with ``--augment`` ``augment``."""
+    torch.manual_seed(1)
+    model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8))
+    rollout = _rollout(model)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    options = PPOArgs(update_epochs=2, num_minibatches=2, augment=augment)
+    advantages = torch.linspace(-1, 1, 32).reshape(16, 2)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        ppo.ppo_update(model, optimizer, rollout, advantages, advantages + 1, options, rng)
+    obs = rollout.obs.reshape(-1, *rollout.obs.shape[2:])
+    with torch.no_grad():
+        gaps = [(model.heads(random_shift(obs, np.random.default_rng(s)))[0]
+                 - model.heads(obs)[0]).abs().mean() for s in range(8)]
+    return float(torch.stack(gaps).mean())
+
+
+def test_the_regulariser_makes_the_policy_steadier_under_shifts():
+    assert _shift_gap(10.0) < 0.5 * _shift_gap(0.0)
+
+
+def test_a_negative_weight_is_refused():
+    with pytest.raises(OptionError, match="augment"):
+        PPOArgs(augment=-0.1).validate()
