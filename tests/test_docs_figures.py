@@ -4,6 +4,7 @@ record behind it carries ``versions``; no page quotes a figure as an unrecorded 
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -49,6 +50,19 @@ def records(reference: str) -> list[Path]:
     return backing
 
 
+def versioned(record: Path) -> bool:
+    """Whether the JSON ``record`` names the versions it ran with: a ``versions`` table at its
+    top with torch's, pybullet's and onnxruntime's versions in it (and the git commit's key:
+    a copy without its .git records None)."""
+    try:
+        data = json.loads(record.read_text())
+    except ValueError:
+        return False
+    versions = data.get("versions") if isinstance(data, dict) else None
+    return isinstance(versions, dict) and "git" in versions and \
+        all(versions.get(key) for key in ("torch", "pybullet", "onnxruntime"))
+
+
 def test_the_pages_reference_results():
     assert len(references()) > 50  # the pattern still finds the pages' references
 
@@ -59,8 +73,7 @@ def test_every_referenced_result_exists_and_names_its_versions(page, reference):
         return
     backing = records(reference)
     assert backing, f"{page}: benchmarks/results/{reference} has no JSON record beside it"
-    unversioned = [str(p.relative_to(RESULTS)) for p in backing
-                   if '"versions"' not in p.read_text()]
+    unversioned = [str(p.relative_to(RESULTS)) for p in backing if not versioned(p)]
     assert not unversioned, f"{page}: benchmarks/results/{reference}: no versions in {unversioned}"
 
 

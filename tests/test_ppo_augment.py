@@ -9,7 +9,7 @@ import torch
 
 from jetbot_rt.train import ppo
 from jetbot_rt.train.augment import random_shift
-from jetbot_rt.train.hyperparams import ModelConfig, OptionError, PPOArgs
+from jetbot_rt.train.hyperparams import CriticConfig, ModelConfig, OptionError, PPOArgs
 from jetbot_rt.train.model import ActorCritic, normal_log_prob
 from jetbot_rt.train.rollout import Rollout
 
@@ -75,3 +75,63 @@ def test_the_regulariser_makes_the_policy_steadier_under_shifts():
 def test_a_negative_weight_is_refused():
     with pytest.raises(OptionError, match="augment"):
         PPOArgs(augment=-0.1).validate()
+
+
+def _penalty(critic: bool) -> tuple[ActorCritic, torch.Tensor, torch.Tensor]:
+    """The regulariser on 8 random frames, backpropagated; the unshifted frames' mean kept
+    to read its gradient."""
+    torch.manual_seed(2)
+    config = ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8)
+    model = ActorCritic(config, CriticConfig(state_size=3, hidden=8) if critic else None)
+    obs = model.preprocess(torch.randint(0, 256, (8, SIZE, SIZE, 3)).float())
+    mu, log_std, value = model.heads(obs)
+    mu.retain_grad()
+    dist = torch.distributions.Normal(mu, log_std.exp())
+    critic_value = model.critic_value(torch.randn(8, 3)) if critic else value.squeeze(-1)
+    penalty = ppo.shift_penalty(model, obs, dist, critic_value, not critic,
+                                np.random.default_rng(0))
+    penalty.backward()
+    return model, penalty, mu
+
+
+def test_the_frames_own_answer_is_the_fixed_side():
+    _, penalty, mu = _penalty(critic=False)
+    assert penalty > 0
+    assert mu.grad is None  # detached: only the shifted frames' answers move
+
+
+def test_the_image_critic_is_regularised_and_the_asymmetric_critic_is_not():
+    image, _, _ = _penalty(critic=False)
+    assert image.value_head.weight.grad.abs().sum() > 0
+    asymmetric, _, _ = _penalty(critic=True)
+    grad = asymmetric.value_head.weight.grad
+    assert grad is None or not grad.any()
+    assert all(p.grad is None or not p.grad.any() for p in asymmetric.critic.parameters())
+
+
+def test_minibatches_of_one_sample_leave_the_weights_finite():
+    torch.manual_seed(1)
+    model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8))
+    rollout = _rollout(model)
+    options = PPOArgs(update_epochs=1, num_minibatches=32)  # 32 samples: one each
+    advantages = torch.linspace(-1, 1, 32).reshape(16, 2)
+    ppo.ppo_update(model, torch.optim.Adam(model.parameters(), lr=1e-3), rollout, advantages,
+                   advantages + 1, options, np.random.default_rng(0))
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_an_update_with_the_asymmetric_critic_leaves_the_image_value_head_alone():
+    torch.manual_seed(1)
+    config = ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8)
+    model = ActorCritic(config, CriticConfig(state_size=3, hidden=8))
+    plain = _rollout(ActorCritic(config))
+    rollout = Rollout(*[getattr(plain, f) for f in ("obs", "actions", "logprobs", "rewards",
+                                                     "dones", "values", "next_obs",
+                                                     "next_done", "episodes")],
+                      states=torch.randn(16, 2, 3), next_state=torch.randn(2, 3))
+    before = model.value_head.weight.clone()
+    advantages = torch.linspace(-1, 1, 32).reshape(16, 2)
+    ppo.ppo_update(model, torch.optim.Adam(model.parameters(), lr=1e-2), rollout, advantages,
+                   advantages + 1, PPOArgs(update_epochs=2, num_minibatches=2, augment=10.0),
+                   np.random.default_rng(0))
+    assert torch.equal(model.value_head.weight, before)  # the image critic is never trained

@@ -21,11 +21,11 @@ import numpy as np
 class GoalExpert:
     stop_distance: float = 0.12
     """m, axle to the goal's centre: command zero from here on. Success needs < 0.15 m; the
-    robot coasts 0.5-4.5 cm after the zero command (latency up to 0.1 s, motor lag 0.05 s, up
-    to ~0.3 m/s), touching the block at most without pushing it 3 cm. Why 3 cm inside 0.15 m:
-    the student's stop is blurred over a few cm (the randomized camera mount moves the
-    block's picture), and with 2 cm of margin most of its misses were stalls 0-1.5 cm
-    outside 0.15 m on dead-band robots (docs/BENCHMARKS.md, "How seek's recipe was chosen")."""
+    robot coasts on after the zero command (0.2-2.7 cm in the randomized episodes:
+    ``benchmarks/bench_expert_choices.py``), touching the block at most without pushing it
+    3 cm. Why 3 cm inside 0.15 m: the student's stop is blurred over a few cm (the randomized
+    camera mount moves the block's picture), and with 2 cm of margin most of its misses were
+    stalls just outside 0.15 m on dead-band robots."""
     stop_lead: float = 0.0
     """s; moves the stop point out by speed * this. 0: the stop is a function of where the
     block is, which the camera shows; speed a single frame hardly shows, and a stop that

@@ -8,7 +8,8 @@ import torch
 import torch.nn.functional as F
 
 AUGMENT_SHIFT = 4
-"""Pixels either way at the policy's 56x56: DrQ's 4 at 84 px, a little more of the frame."""
+"""Pixels either way of the network's input (56x56 by default: DrQ's 4 at 84 px, a little
+more of the frame)."""
 
 
 def random_shift(frames: torch.Tensor, rng: np.random.Generator,

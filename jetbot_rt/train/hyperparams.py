@@ -354,10 +354,11 @@ class PPOArgs(CurriculumOptions):
     """Gradient norm clip."""
     augment: float = 0.0
     """DrAC's weight (Raileanu et al. 2021; 0: off; 0.1 is DrAC's default): each minibatch's
-    frames are also seen shifted by up to 4 pixels either way (the edge pixels repeated), and the
-    loss adds ``augment`` times how far the policy's mean (and the image critic's value)
-    moves from the unshifted frame's. The surrogate itself stays on the collected frames, so
-    PPO's ratio keeps its meaning. Against over-fitting the scenes trained on."""
+    frames are also seen shifted by up to 4 pixels of the network's input either way (the
+    edge pixels repeated), and the loss adds ``augment`` times how far the policy's mean (and
+    the image critic's value) moves from the unshifted frame's. The surrogate itself stays on
+    the collected frames, so PPO's ratio keeps its meaning. Against over-fitting the scenes
+    trained on."""
     reward_transform: str = "symlog"
     """"symlog": learn from sign(r) * ln(1 + |r|) of the task reward (then shaping, scale
     and clip); "none": the task reward as is. The forward reward spans -27 .. 1e4+;

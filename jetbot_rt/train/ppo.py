@@ -117,8 +117,8 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
     clip = options.clip_coef
     clipfracs: list[float] = []
     for _ in range(options.update_epochs):
-        # sizes within one of each other: a remainder minibatch of one sample has no std
-        # to normalise its advantage by (NaN)
+        # sizes within one of each other, so no minibatch has one sample while another has
+        # more (one sample alone, where minibatches outnumber half the batch, is kept as is)
         for part in np.array_split(rng.permutation(batch_size),
                                    min(options.num_minibatches, batch_size)):
             mb = torch.from_numpy(part).to(obs.device)
@@ -131,7 +131,8 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
                 approx_kl = ((ratio - 1) - log_ratio).mean()
                 clipfracs.append(((ratio - 1.0).abs() > clip).float().mean().item())
             mb_adv = advantages[mb]
-            mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
+            if len(part) > 1:  # one sample has no std (NaN): its advantage as it is
+                mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
             surrogate = torch.max(-mb_adv * ratio, -mb_adv * ratio.clamp(1 - clip, 1 + clip))
             if lag_weights is not None:
                 surrogate = surrogate * lag_weights[mb]
