@@ -59,7 +59,7 @@ def _warp(lens: Lens, size: tuple[int, int]) -> FisheyeWarp:
 
 def lens_warp(sim: SimConfig, size: tuple[int, int]) -> FisheyeWarp | None:
     """The warp for ``[sim]``'s lens at ``size``, or None for the pinhole. Cached: a
-    randomized episode's lens is a new map (a few ms at 56x56), a repeated one is not."""
+    randomized episode's lens is a new map (about 0.3 ms at 56x56), a repeated one is not."""
     if sim.lens != "fisheye":
         return None
     return _warp(Lens.from_sim(sim), (int(size[0]), int(size[1])))
