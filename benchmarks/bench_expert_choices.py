@@ -13,7 +13,11 @@ turns it off) on the state its frames show, as ``python -m jetbot_rt.train.exper
   the goal from that tick to the closest it comes after (shown for these arms only: where a
   latency keeps older commands running, a search or a back-off can move it away instead);
 - follow's pure-pursuit look-ahead: 0.15 m against 0.25 m, the median offset from the
-  centre line over every step.
+  centre line over every step, and how far along the track the expert gets;
+- the tasks' own baselines (docs/TRAINING.md, "Tasks"): avoid's expert, a constant full
+  forward command on avoid and on follow;
+- forward's geometry: the robot at full command from the nominal start, randomization off
+  (its speed, the distance at which it touches the block, and after how many steps).
 
 Writes expert_choices.json and .md to --out.
 """
@@ -49,7 +53,8 @@ def drive(task: str, condition: str | None, settings: dict[str, float], episodes
     and the least after it (goal tasks), and the median offset from the track (follow)."""
     config = load_config(CONDITIONS / f"{condition}.toml") if condition else None
     env = JetbotEnv(task, config, image_size=EXPERT_FRAME)
-    expert = task_expert(task, settings)
+    constant = settings.get("constant")
+    expert = None if constant else task_expert(task, settings)
     rows = []
     try:
         for i in range(episodes):
@@ -57,7 +62,8 @@ def drive(task: str, condition: str | None, settings: dict[str, float], episodes
             seen = FrameState(info, env.period)
             stopped_at, closest, offsets, done = None, np.inf, [], False
             while not done:
-                command = expert.label(seen.info)
+                command = (np.asarray(constant, dtype=np.float32) if expert is None
+                           else expert.label(seen.info))
                 if stopped_at is None and not np.any(command) and "distance" in info:
                     stopped_at = float(info["distance"])
                 _, _, terminated, truncated, info = env.step(command)
@@ -69,7 +75,9 @@ def drive(task: str, condition: str | None, settings: dict[str, float], episodes
                 done = terminated or truncated
             rows.append({"success": bool(info["is_success"]),
                          "coast_m": None if stopped_at is None else stopped_at - closest,
-                         "median_offset_m": statistics.median(offsets) if offsets else None})
+                         "median_offset_m": statistics.median(offsets) if offsets else None,
+                         "progress_m": float(info["progress"]) if "progress" in info
+                         else None})
     finally:
         env.close()
     return rows
@@ -97,19 +105,49 @@ ARMS: list[tuple[str, str, str, str | None, dict[str, float], float | None]] = [
     ("stop", "stop_lead 0.15 s (before)", "seek", None, {"stop_lead": 0.15}, None),
     ("lookahead", "0.15 m (now)", "follow", None, {}, 0.15),
     ("lookahead", "0.25 m (before)", "follow", None, {}, 0.25),
+    ("baseline", "avoid's expert", "avoid", None, {}, None),
+    ("baseline", "constant forward (1, 1)", "avoid", None, {"constant": (1.0, 1.0)}, None),
+    ("baseline", "constant forward (1, 1)", "follow", None, {"constant": (1.0, 1.0)}, None),
 ]
+
+
+def forward_geometry() -> dict[str, float]:
+    """forward's robot at full command from the nominal start, randomization off: its median
+    speed (m/s), the least robot-block distance (the touch) and the step it is first within
+    1 mm of it."""
+    env = JetbotEnv("forward", randomize=False, image_size=EXPERT_FRAME)
+    try:
+        _, info = env.reset(seed=0, options={"start_noise": False})
+        distances, speeds, done = [float(info["distance"])], [], False
+        while not done:
+            _, _, terminated, truncated, info = env.step(np.ones(2, dtype=np.float32))
+            distances.append(float(info["distance"]))
+            speeds.append(float(info["speed"]))
+            done = terminated or truncated
+    finally:
+        env.close()
+    touch = min(distances)
+    return {"start_distance_m": round(distances[0], 4),
+            "median_speed_m_s": round(statistics.median(speeds[30:]), 4),
+            "touch_distance_m": round(touch, 4),
+            "touch_step": next(i for i, d in enumerate(distances) if d < touch + 0.001),
+            "episode_steps": len(distances) - 1}
 
 
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     coasts = sorted(r["coast_m"] for r in rows if r["coast_m"] is not None)
     offsets = [r["median_offset_m"] for r in rows if r["median_offset_m"] is not None]
+    progress = sorted(r["progress_m"] for r in rows if r["progress_m"] is not None)
     return {"episodes": len(rows), "successes": sum(r["success"] for r in rows),
             "coast_cm": None if not coasts else {
                 "min": round(100 * coasts[0], 2),
                 "median": round(100 * statistics.median(coasts), 2),
                 "p95": round(100 * float(np.percentile(coasts, 95)), 2),
                 "max": round(100 * coasts[-1], 2)},
-            "median_offset_cm": round(100 * statistics.median(offsets), 2) if offsets else None}
+            "median_offset_cm": round(100 * statistics.median(offsets), 2) if offsets else None,
+            "progress_m": None if not progress else {
+                "min": round(progress[0], 2), "median": round(statistics.median(progress), 2),
+                "max": round(progress[-1], 2)}}
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -119,9 +157,10 @@ def markdown(result: dict[str, Any]) -> str:
              "the state its frames show; the condition files are in "
              "`benchmarks/seek_conditions/` (none: the task's randomization).", "",
              "| comparison | arm | task | condition | success | coast after the first zero "
-             "command, cm (min / median / p95 / max) | median offset from the centre line |",
+             "command, cm (min / median / p95 / max) | median offset from the centre line | "
+             "along the track, m (min / median / max) |",
              # the coast only where the stop is compared (see the docstring)
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for row in result["arms"]:
         coast = row["coast_cm"] if row["comparison"] == "stop" else None
         lines.append(
@@ -130,7 +169,15 @@ def markdown(result: dict[str, Any]) -> str:
             + (f"{coast['min']} / {coast['median']} / {coast['p95']} / {coast['max']}"
                if coast else "") + " | "
             + (f"{row['median_offset_cm']} cm" if row["median_offset_cm"] is not None else "")
-            + " |")
+            + " | " + (" / ".join(str(row["progress_m"][k]) for k in ("min", "median", "max"))
+                       if row.get("progress_m") else "") + " |")
+    geometry = result.get("forward_geometry")
+    if geometry:
+        lines += ["", "forward at full command from the nominal start, randomization off: "
+                  f"{geometry['start_distance_m']} m from the block at the start, "
+                  f"{geometry['median_speed_m_s']} m/s (median after the first second), "
+                  f"touching it at {geometry['touch_distance_m']} m (robot base to block) "
+                  f"from step {geometry['touch_step']} of {geometry['episode_steps']}."]
     return "\n".join(lines) + "\n"
 
 
@@ -152,7 +199,7 @@ def main() -> None:
     result = {"cpu": cpu_model(), "cores": os.cpu_count(), "date": time.strftime("%Y-%m-%d"),
               "episodes": args.episodes,
               "command": "python benchmarks/bench_expert_choices.py " + " ".join(sys.argv[1:]),
-              "arms": arms}
+              "arms": arms, "forward_geometry": forward_geometry()}
     write_results(args.out, "expert_choices", result, markdown(result))
 
 

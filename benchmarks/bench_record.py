@@ -65,11 +65,14 @@ def children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def one_run(root: Path, backend: str, seconds: float, record: bool, camera: str) -> dict:
+def one_run(root: Path, backend: str, seconds: float, record: bool, camera: str,
+            extra_config: str = "") -> dict:
+    """One run; ``extra_config`` (TOML) is added to its config (bench_record_codecs.py: the
+    ``[record] codec``)."""
     root.mkdir(parents=True)
     runtime = RuntimeProcess(root, backend, bundled_policy_path(), duration=seconds,
                              config=PATIENT + (camera_config(camera) if backend == "real"
-                                               else ""))
+                                               else "") + extra_config)
     rec = root / "rec"
     if record:
         runtime.args += ["--record", str(rec)]
@@ -100,7 +103,8 @@ def one_run(root: Path, backend: str, seconds: float, record: bool, camera: str)
         size = sum(p.stat().st_size for p in rec.iterdir())
         out.update(frames_written=counts["frames_written"],
                    frames_dropped=counts["frames_dropped"],
-                   records_lost=counts["records_lost"], disk_bytes=size)
+                   records_lost=counts["records_lost"], disk_bytes=size,
+                   codec=json.loads((rec / "meta.json").read_text()).get("codec"))
     return out
 
 

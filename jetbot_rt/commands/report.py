@@ -50,7 +50,7 @@ EXIT_NOT_WRITTEN = 1
 """An output could not be written (disk full, no permission): not bad input (2)."""
 CODECS = (("avc1", "H.264"), ("mp4v", "mp4v"))
 """Tried in this order. VP9 (vp09) plays in browsers too and pip's OpenCV has it, but it took
-120 ms a frame here against mp4v's 4: 30 times the report's time."""
+22 times mp4v's CPU a frame (``benchmarks/bench_record_codecs.py``)."""
 NO_H264 = ("this OpenCV's FFmpeg has no H.264 encoder, so browsers may not play it; "
            "`ffmpeg -i run.mp4 -c:v libx264 -pix_fmt yuv420p run-h264.mp4` converts it")
 FAULT_COLOR, ORDERLY_COLOR, HUMAN_COLOR = "tab:red", "tab:gray", "tab:purple"

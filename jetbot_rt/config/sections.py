@@ -183,7 +183,7 @@ class RecordConfig:
     so that a full SD card never starves the system's own logs."""
     codec: str = field(default="huffyuv", metadata=one_of(("huffyuv", "ffv1")))
     """Lossless video codec of the frames: "huffyuv" (little CPU, larger files) or "ffv1"
-    (about a third smaller, eight times the CPU; docs/RECORDING.md)."""
+    (a quarter to a half smaller, 4-9 times the CPU; docs/RECORDING.md)."""
 
 
 @dataclass

@@ -34,7 +34,8 @@ ERROR_TEXT = 64
 FRAMES_FILE = "frames.mkv"
 CODECS = {"huffyuv": "HFYU", "ffv1": "FFV1"}
 """Lossless codecs (pip's opencv-python(-headless) writes both through its FFmpeg). At 224x224
-on the development machine: HuffYUV 0.5 ms of CPU and ~83 KB a frame, FFV1 4 ms and ~56 KB."""
+on the 2-core VM: HuffYUV 0.3 ms of CPU and ~83 KB a frame, FFV1 2.8 ms and ~56 KB
+(``benchmarks/bench_record_codecs.py``)."""
 
 
 def layout(mm: mmap.mmap, slots: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
