@@ -43,7 +43,7 @@ F_SETPIPE_SZ = 1031
 
 PATIENT = "[loop]\nwatchdog_timeout = 1.0\nmax_frame_age = 1.0\n"
 """These cases are about signals and stop requests, not the watchdog or stale frames: generous
-thresholds keep a loaded CI host (load 13 on 2 cores) from ending the run first."""
+thresholds keep a loaded CI host (a loaded 2-core VM) from ending the run first."""
 
 
 def control_socket(rt: RuntimeProcess) -> Path:

@@ -38,7 +38,7 @@ OFF_BOUND_S = 1.0
 
 PATIENT = "[loop]\nwatchdog_timeout = 1.0\nmax_frame_age = 1.0\n"
 """These cases are about signals and stop requests, not the watchdog or stale frames: generous
-thresholds keep a loaded CI host (load 13 on 2 cores) from ending the run first."""
+thresholds keep a loaded CI host (a loaded 2-core VM) from ending the run first."""
 
 
 def caught(pid: int) -> set[int]:
