@@ -121,3 +121,15 @@ def test_bad_camera_input_is_refused_in_one_line_with_exit_2(
     done = _calibrate(*cases["no board"], cwd=tmp_path)  # and as the command exits on it
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "found in 0 of 3" in done.stderr
+
+
+def test_the_fisheye_flags_are_this_opencvs_own():
+    """By name where OpenCV names them (5.x gives them other numbers than 4.x's 1, 2, 8: with
+    those the fit kept the skew and the first poses)."""
+    import cv2
+
+    from jetbot_rt.calibration.intrinsics import fisheye_flags
+    space = cv2.fisheye if hasattr(cv2.fisheye, "CALIB_FIX_SKEW") else cv2
+    want = (space.CALIB_USE_INTRINSIC_GUESS | space.CALIB_RECOMPUTE_EXTRINSIC
+            | space.CALIB_FIX_SKEW)
+    assert fisheye_flags() == want

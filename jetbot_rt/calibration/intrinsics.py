@@ -38,11 +38,23 @@ BOARD_INNER = (9, 6)
 BOARD_SQUARE = 0.025
 """m: the printed board's square at 100 % on A4 (10 x 7 squares, 250 x 175 mm)."""
 MIN_VIEWS = 6
-# cv2.fisheye's flags, by value: OpenCV 4.x puts them at cv2.fisheye.CALIB_* or at cv2.CALIB_*
-# depending on the build (JetPack's 4.1 and the pip wheels differ)
-FISHEYE_USE_INTRINSIC_GUESS = 1
-FISHEYE_RECOMPUTE_EXTRINSIC = 2
-FISHEYE_FIX_SKEW = 8
+FISHEYE_FLAGS_4X = {"CALIB_USE_INTRINSIC_GUESS": 1, "CALIB_RECOMPUTE_EXTRINSIC": 2,
+                    "CALIB_FIX_SKEW": 8}
+"""cv2.fisheye's flags as OpenCV 4.x numbers them, for a build that names them nowhere."""
+
+
+def fisheye_flags() -> int:
+    """cv2.fisheye.calibrate's flags (the intrinsic guess, the poses recomputed, no skew) as
+    this OpenCV numbers them: 4.x names them at cv2.fisheye.CALIB_* or cv2.CALIB_* depending
+    on the build (JetPack's 4.1 and the pip wheels differ), 5.x at cv2.CALIB_* with other
+    values (4.x's 2 and 8 mean other flags there: OpenCV's stage then kept the skew and the
+    first poses)."""
+    fisheye = getattr(cv2, "fisheye", None)
+    flags = 0
+    for name, value in FISHEYE_FLAGS_4X.items():
+        named = getattr(fisheye, name, None) if fisheye is not None else None
+        flags |= int(named if named is not None else getattr(cv2, name, value))
+    return flags
 
 
 @dataclass(frozen=True)
@@ -173,16 +185,16 @@ def calibrate(views: Sequence[np.ndarray], size: tuple[int, int],
     """Fit the lens to the board's corners seen in ``views`` (each ``find_board``'s output) in
     frames of ``size`` (width, height): cv2.fisheye.calibrate from the datasheet's lens (skew
     fixed at 0), then a joint Levenberg-Marquardt refinement of the intrinsics and every view's
-    pose (OpenCV's fit alternates between them and stops short: on exact synthetic corners it
-    left 0.3 px rms and errors up to 1.2 px). A ``ValueError`` when the views are too few or
-    the fit does not converge."""
+    pose (what OpenCV's fit leaves, the refinement takes to float round-off on exact synthetic
+    corners: ``benchmarks/bench_calibration.py``). A ``ValueError`` when the views are too few
+    or the fit does not converge."""
     if len(views) < MIN_VIEWS:
         raise ValueError(f"{len(views)} views of the board; at least {MIN_VIEWS} are needed "
                          "(the board tilted and moved about the whole frame)")
     width, height = size
     board = board_points(inner, square)
     objects = [board] * len(views)
-    flags = FISHEYE_USE_INTRINSIC_GUESS | FISHEYE_RECOMPUTE_EXTRINSIC | FISHEYE_FIX_SKEW
+    flags = fisheye_flags()
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-10)
     try:
         _, matrix, dist, rvecs, tvecs = cv2.fisheye.calibrate(
