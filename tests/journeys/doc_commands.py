@@ -155,7 +155,7 @@ def command(doc: str, start: str) -> str:
 
 TOML_BLOCKS: dict[str, list[tuple[str, str]]] = {
     "calibrate the drive in the simulator (docs/CALIBRATION.md)": [
-        ("docs/CALIBRATION.md", "motor_gain = 19.853"),
+        ("docs/CALIBRATION.md", "motor_gain = 19.854"),
     ],
     "calibrate the lens in the simulator (docs/CALIBRATION.md)": [
         ("docs/CALIBRATION.md", "lens_focal = 1.02024"),
