@@ -21,7 +21,6 @@ import datetime
 import importlib.util
 import math
 import os
-import platform
 import shlex
 import sys
 import tempfile
@@ -33,7 +32,8 @@ from typing import Any
 
 import cv2
 import numpy as np
-from versions import cpu_model, write_results
+from bench_sim import machine
+from versions import write_results
 
 from jetbot_rt.sim import appearance, looks, textures
 from jetbot_rt.sim import world as world_module
@@ -69,11 +69,6 @@ BOX_SCENES = [  # the box 1 m ahead, seen from four sides; the light comes from 
 LOOK = SimConfig(exposure=1.3, white_balance=[1.1, 1.0, 0.9], gain_noise=0.03, vignetting=0.5,
                  motion_blur=0.02)
 """Every camera-look effect on (bench_appearance.py's "worst" values)."""
-
-
-def machine() -> dict[str, Any]:
-    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
-            "loadavg_1min_at_start": round(os.getloadavg()[0], 2)}
 
 
 def in_rounds(names: list[Any], rounds: int) -> Iterator[Any]:

@@ -18,16 +18,17 @@ import dataclasses
 import datetime
 import math
 import os
-import platform
 import shlex
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from versions import cpu_model, write_results
+from bench_sim import machine
+from bench_sim_choices import in_rounds
+from versions import write_results
 
 from jetbot_rt.calibration.intrinsics import Lens
 from jetbot_rt.sim.config import SimConfig
@@ -48,11 +49,6 @@ WHEEL_RADIUS = 0.03
 PUSH_DUTIES = (0.1, 0.2, 0.5, 1.0)
 HEADINGS = tuple(k * math.pi / 4 for k in range(8))
 LENS_SIZES = (56, 224)
-
-
-def machine() -> dict[str, Any]:
-    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
-            "loadavg_1min_at_start": round(os.getloadavg()[0], 2)}
 
 
 # The measurements of tests/test_sim_imperfections.py -------------------------------------
@@ -206,13 +202,6 @@ def heading_bias() -> dict[str, Any]:
 
 
 # 5. A lens's map ---------------------------------------------------------------------------
-
-
-def in_rounds(names: list[Any], rounds: int) -> Iterator[Any]:
-    """The variants, round after round, each round's order rotated by one."""
-    for r in range(rounds):
-        k = r % len(names)
-        yield from names[k:] + names[:k]
 
 
 def lens_map(rounds: int, repeats: int) -> dict[str, Any]:
