@@ -184,6 +184,11 @@ class Checkpoint:
                 self.critic.state_size != critic.state_size:
             raise self._refuse(f"its critic reads {self.critic.state_size} state values, task "
                                f"{task!r} gives {critic.state_size}")
+        if self.critic is not None and critic is not None and \
+                self.critic.predicts_state != critic.predicts_state:
+            was, now = ("with", "without") if self.critic.predicts_state else ("without", "with")
+            raise self._refuse(f"was trained {was} --predict-state, not {now}: resume it as it "
+                               "was trained (a new run can start from its network: --init)")
         if self.training is None:
             raise self._refuse("holds no optimizer state to resume from (a new run can start "
                                "from its network: init)")
@@ -327,7 +332,7 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
             critic = CriticConfig.from_dict(state["critic"])
         except OptionError as exc:
             raise _Defect(f"{exc.name} {exc.problem}") from None
-        total = model_config.parameter_count() + critic.parameter_count()
+        total = model_config.parameter_count() + critic.parameter_count(model_config)
         if total > MAX_PARAMETERS:
             raise _Defect(f"the network and its critic have {total:,} parameters, more than "
                           f"{MAX_PARAMETERS:,}")

@@ -175,10 +175,16 @@ class CriticConfig:
     """Width of the privileged state (``len(Task.critic_state_names)``)."""
     hidden: int = 64
     """Width of the critic's two hidden layers."""
+    predicts_state: bool = False
+    """Whether the actor also has ``state_head`` (PPO's ``--predict-state``): a linear map
+    from its image features to this state, trained to predict it and never exported."""
 
     def __post_init__(self) -> None:
         _check_int("critic.state_size", self.state_size)
         _check_int("critic.hidden", self.hidden)
+        if not isinstance(self.predicts_state, bool):
+            raise OptionError("critic.predicts_state",
+                              f"must be true or false, got {value_text(self.predicts_state)}")
         if not 1 <= self.state_size <= MAX_CRITIC_STATE:
             raise OptionError("critic.state_size", f"must be 1 .. {MAX_CRITIC_STATE}, got "
                                                    f"{self.state_size}")
@@ -188,20 +194,27 @@ class CriticConfig:
             raise OptionError("critic", f"has {self.parameter_count():,} parameters, more than "
                                         f"the {MAX_PARAMETERS:,} a checkpoint may hold")
 
-    def parameter_count(self) -> int:
+    def parameter_count(self, model: ModelConfig | None = None) -> int:
+        """The critic's parameters, with the state head's on ``model``'s features when it
+        has one and ``model`` is given."""
+        head = (model.hidden + 1) * self.state_size if model and self.predicts_state else 0
         return (self.state_size + 1) * self.hidden + (self.hidden + 1) * self.hidden + \
-            self.hidden + 1
+            self.hidden + 1 + head
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        data = asdict(self)
+        if not self.predicts_state:  # as checkpoints before --predict-state have it
+            del data["predicts_state"]
+        return data
 
     @classmethod
     def from_dict(cls, data: Any) -> CriticConfig:
         """A config as ``to_dict`` wrote it; ``OptionError`` names the first bad key."""
-        if not isinstance(data, dict) or set(data) != {"state_size", "hidden"}:
-            raise OptionError("critic", f"must be a dict of state_size and hidden, got "
-                                        f"{value_text(data)}")
-        return cls(data["state_size"], data["hidden"])
+        if not isinstance(data, dict) or \
+                set(data) - {"predicts_state"} != {"state_size", "hidden"}:
+            raise OptionError("critic", f"must be a dict of state_size, hidden and optionally "
+                                        f"predicts_state, got {value_text(data)}")
+        return cls(data["state_size"], data["hidden"], data.get("predicts_state", False))
 
 
 def value_text(value: Any) -> str:
@@ -359,6 +372,14 @@ class PPOArgs(CurriculumOptions):
     the image critic's value) moves from the unshifted frame's. The surrogate itself stays on
     the collected frames, so PPO's ratio keeps its meaning. Against over-fitting the scenes
     trained on."""
+    predict_state: float = 0.0
+    """With ``critic`` "state": the weight of an auxiliary loss (0: off) that trains a linear
+    head on the actor's image features to predict the critic's privileged state (for seek the
+    goal's distance and bearing), the squared error averaged over its values. A dense,
+    supervised signal for the encoder to find what the task's state depends on, as Lample and
+    Chaplot (2017) predicted game features from frames; the head is a training-time part,
+    like the critic, and the exported actor is unchanged. No expert is involved: the target
+    is the simulator's state, not an action."""
     reward_transform: str = "symlog"
     """"symlog": learn from sign(r) * ln(1 + |r|) of the task reward (then shaping, scale
     and clip); "none": the task reward as is. The forward reward spans -27 .. 1e4+;
@@ -442,13 +463,19 @@ class PPOArgs(CurriculumOptions):
             raise OptionError("ray_max_restarts", f"must be >= 0, got {self.ray_max_restarts}")
         if self.augment < 0:
             raise OptionError("augment", f"must be >= 0, got {self.augment}")
+        if self.predict_state < 0:
+            raise OptionError("predict_state", f"must be >= 0, got {self.predict_state}")
+        if self.predict_state > 0 and self.critic != "state":
+            raise OptionError("predict_state", "needs critic \"state\": the state it predicts "
+                                               "is the critic's")
         if self.reward_transform not in REWARD_TRANSFORMS:
             raise OptionError("reward_transform", f"must be one of "
                                                   f"{', '.join(REWARD_TRANSFORMS)}, got "
                                                   f"{value_text(self.reward_transform)}")
         critic = critic_config(self)
         if critic is not None and \
-                self.model.parameter_count() + critic.parameter_count() > MAX_PARAMETERS:
+                self.model.parameter_count() + critic.parameter_count(self.model) > \
+                MAX_PARAMETERS:
             raise OptionError("critic_hidden", f"makes the network and its critic larger than "
                                                f"the {MAX_PARAMETERS:,} parameters a "
                                                "checkpoint may hold")
@@ -472,7 +499,8 @@ def critic_config(options: PPOArgs) -> CriticConfig | None:
     if not 1 <= options.critic_hidden <= MAX_HIDDEN:
         raise OptionError("critic_hidden", f"must be 1 .. {MAX_HIDDEN}, got "
                                            f"{options.critic_hidden}")
-    return CriticConfig(len(task.critic_state_names), options.critic_hidden)
+    return CriticConfig(len(task.critic_state_names), options.critic_hidden,
+                        options.predict_state > 0)
 
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {name: load().training for name, load in

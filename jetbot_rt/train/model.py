@@ -13,7 +13,8 @@ With a ``CriticConfig`` (PPO's ``--critic state``) the network also has ``critic
 the task's privileged state: the asymmetric actor-critic. ``value`` and ``distribution`` then
 take that state and the value comes from it; ``forward`` -- what is exported -- stays the
 image-only actor (its ``value`` output is the image head's, which such a run never trains,
-as a DAgger policy's).
+as a DAgger policy's). ``CriticConfig.predicts_state`` adds ``state_head``: a linear map from
+the actor's features to that state (PPO's ``--predict-state``), also never exported.
 """
 
 from __future__ import annotations
@@ -28,6 +29,10 @@ from jetbot_rt.train.hyperparams import CriticConfig, ModelConfig
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 CRITIC = "critic"
 """The asymmetric critic's module (its weights are named ``critic.*``)."""
+STATE_HEAD = "state_head"
+"""The state prediction head's module (``--predict-state``; weights ``state_head.*``)."""
+TRAINING_ONLY = (CRITIC, STATE_HEAD)
+"""The modules a run trains that the exported actor (and the env workers' copies) lack."""
 
 
 def normal_log_prob(x: torch.Tensor, mu: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
@@ -82,6 +87,9 @@ class ActorCritic(nn.Module):
                 nn.Tanh(),
                 _layer_init(nn.Linear(critic.hidden, 1), 1.0),
             )
+        self.state_head: nn.Module | None = None
+        if critic is not None and critic.predicts_state:
+            self.state_head = _layer_init(nn.Linear(config.hidden, critic.state_size), 1.0)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``obs``: ``[N, S, S, 3]`` RGB, 0..255 (any float or uint8 dtype), S = image_size.
@@ -122,23 +130,37 @@ class ActorCritic(nn.Module):
                      ) -> tuple[torch.distributions.Normal, torch.Tensor]:
         """Action distribution and value of preprocessed observations (with the asymmetric
         critic, the value of their privileged ``state``)."""
-        mu, log_std, value = self.heads(x)
-        normal = torch.distributions.Normal(mu, log_std.exp(), validate_args=self.validate_args)
+        normal, value, _ = self.distribution_and_state(x, state)
+        return normal, value
+
+    def distribution_and_state(self, x: torch.Tensor, state: torch.Tensor | None = None
+                               ) -> tuple[torch.distributions.Normal, torch.Tensor,
+                                          torch.Tensor | None]:
+        """``distribution``'s, and ``state_head``'s prediction of the state from the same
+        features (None without a state head)."""
+        features = self.encoder(x)
+        mu = self.mu_head(features)
+        normal = torch.distributions.Normal(mu, self.log_std.expand_as(mu).exp(),
+                                            validate_args=self.validate_args)
+        predicted = None if self.state_head is None else self.state_head(features)
         if self.critic is not None:
-            return normal, self.critic_value(state)
-        return normal, value.squeeze(-1)
+            return normal, self.critic_value(state), predicted
+        return normal, self.value_head(features).squeeze(-1), predicted
 
     def actor_state_dict(self) -> dict[str, torch.Tensor]:
         """The weights of the image network alone (``forward``'s, what is exported and what
         the env workers' copies run): ``state_dict`` without the critic's."""
         return {name: weight for name, weight in self.state_dict().items()
-                if not name.startswith(CRITIC + ".")}
+                if name.split(".", 1)[0] not in TRAINING_ONLY}
 
     def critic_parameters(self) -> list[nn.Parameter]:
         return [] if self.critic is None else list(self.critic.parameters())
 
+    def state_head_parameters(self) -> list[nn.Parameter]:
+        return [] if self.state_head is None else list(self.state_head.parameters())
+
     def actor_parameters(self) -> list[nn.Parameter]:
-        critic = {id(p) for p in self.critic_parameters()}
+        critic = {id(p) for p in self.critic_parameters() + self.state_head_parameters()}
         return [p for p in self.parameters() if id(p) not in critic]
 
 

@@ -10,6 +10,9 @@ MLP of the task's privileged simulator state (``hyperparams.CriticConfig``), rea
 time only; the actor, and so the exported ONNX, is the same image network as ever. Nothing
 else changes: the same rollouts, GAE, clipped surrogate and value loss.
 
+``--predict-state W`` (with ``--critic state``) adds a supervised auxiliary loss: a linear
+head on the actor's features predicts that privileged state (``ppo_update``).
+
 ``--overlap`` collects the next rollout while the learner updates on this one
 (``rollout.py``); its samples come from the weights of one update before, each weighed in the
 surrogate by ``min(1, pi_learner / pi_collecting)``.
@@ -43,6 +46,8 @@ METRIC_FIELDS = (
     "mean_final_distance", "success_rate", "policy_loss", "value_loss", "entropy",
     "approx_kl", "clipfrac", "learning_rate", "reward_scale", "worker_restarts",
 )
+STATE_LOSS = "state_loss"
+"""The metrics column of ``--predict-state``'s error (a run without it writes none)."""
 CURVE = (Panel("mean_return", "mean episode return", scale=("symlog", {"linthresh": 1e4})),
          Panel("success_rate", "training success rate", ylim=(-0.05, 1.05), color="tab:green"))
 
@@ -83,6 +88,8 @@ class UpdateStats:
     entropy: float
     approx_kl: float
     clipfrac: float
+    state_loss: float | None = None
+    """The state head's mean squared error (``--predict-state``), else None."""
 
 
 def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Rollout,
@@ -96,12 +103,16 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
     (``rollout.behaviour_logprobs``) is the decoupled surrogate (Hilton et al. 2021): the
     clip stays around the learner's weights at the update's start (``rollout.logprobs``) and
     each sample is weighed by their probability over the collecting weights', truncated at 1
-    as IMPALA's V-trace truncates its ``rho``."""
+    as IMPALA's V-trace truncates its ``rho``. With a state head (``--predict-state``) the
+    loss adds its weight times the head's squared error on ``rollout.states``; the head's
+    gradient is clipped on its own, its error's share in the encoder's with the actor's."""
     obs = rollout.obs.reshape((-1, *rollout.obs.shape[2:]))
     states = None if rollout.states is None else rollout.states.reshape(
         -1, rollout.states.shape[-1])
     clipped = ([model.actor_parameters(), model.critic_parameters()] if states is not None
                else [list(model.parameters())])
+    if model.state_head is not None:
+        clipped.append(model.state_head_parameters())
     actions, old_logprobs = rollout.actions.reshape(-1, 2), rollout.logprobs.reshape(-1)
     lag_weights = (None if rollout.behaviour_logprobs is None else
                    (old_logprobs - rollout.behaviour_logprobs.reshape(-1)).exp().clamp(max=1.0))
@@ -116,13 +127,15 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
     batch_size = len(old_logprobs)
     clip = options.clip_coef
     clipfracs: list[float] = []
+    state_loss: torch.Tensor | None = None
     for _ in range(options.update_epochs):
         # sizes within one of each other, so no minibatch has one sample while another has
         # more (one sample alone, where minibatches outnumber half the batch, is kept as is)
         for part in np.array_split(rng.permutation(batch_size),
                                    min(options.num_minibatches, batch_size)):
             mb = torch.from_numpy(part).to(obs.device)
-            dist, new_value = model.distribution(obs[mb], None if states is None else states[mb])
+            dist, new_value, predicted = model.distribution_and_state(
+                obs[mb], None if states is None else states[mb])
             new_logprob = dist.log_prob(actions[mb]).sum(-1)
             entropy = dist.entropy().sum(-1).mean()
             log_ratio = new_logprob - old_logprobs[mb]
@@ -139,6 +152,9 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
             policy_loss = surrogate.mean()
             value_loss = 0.5 * ((new_value - returns[mb]) ** 2).mean()
             loss = policy_loss - options.ent_coef * entropy + options.vf_coef * value_loss
+            if predicted is not None and states is not None:
+                state_loss = ((predicted - states[mb]) ** 2).mean()
+                loss = loss + options.predict_state * state_loss
             if options.augment > 0:
                 loss = loss + options.augment * shift_penalty(model, obs[mb], dist, new_value,
                                                               states is None, rng)
@@ -148,7 +164,8 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
                 torch.nn.utils.clip_grad_norm_(parameters, options.max_grad_norm)
             optimizer.step()
     return UpdateStats(policy_loss.item(), value_loss.item(), entropy.item(), approx_kl.item(),
-                       float(np.mean(clipfracs)))
+                       float(np.mean(clipfracs)),
+                       None if state_loss is None else state_loss.item())
 
 
 def shift_penalty(model: ActorCritic, frames: torch.Tensor, dist: torch.distributions.Normal,
@@ -219,6 +236,7 @@ def _metrics_row(progress: Progress, episodes: EpisodeStats, stats: UpdateStats,
         "learning_rate": optimizer.param_groups[0]["lr"],
         "reward_scale": round(float(np.sqrt(source.normalizer.return_rms.var + 1e-8)), 3),
         "worker_restarts": source.restarts,
+        **({} if stats.state_loss is None else {STATE_LOSS: round(stats.state_loss, 5)}),
     }
 
 
@@ -229,11 +247,14 @@ class _Run:
         options.validate()
         self.options = options
         self.device = resolve_device(options.device)
-        self.run = RunDirectory(options.out, metric_fields(METRIC_FIELDS, options))
-        saved = self.run.prepare(options.resume)
+        fields = (*METRIC_FIELDS, STATE_LOSS) if options.predict_state > 0 else METRIC_FIELDS
+        self.run = RunDirectory(options.out, metric_fields(fields, options))
+        critic = critic_config(options)
+        saved = self.run.prepare(options.resume, lambda saved: saved.check_resumable(
+            options.task, "ppo", critic))
         torch.manual_seed(options.seed)
         torch.set_num_threads(options.torch_threads)
-        model, resumed = starting_model(options, saved, "ppo", critic_config(options))
+        model, resumed = starting_model(options, saved, "ppo", critic)
         self.model = model.train().to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=options.learning_rate,
                                           eps=1e-5)

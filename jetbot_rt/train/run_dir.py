@@ -38,8 +38,8 @@ import os
 import stat
 import time
 import weakref
-from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +58,7 @@ from jetbot_rt.train.checkpoint import (
 from jetbot_rt.train.device import to_cpu
 from jetbot_rt.train.export import export_model
 from jetbot_rt.train.hyperparams import CriticConfig
-from jetbot_rt.train.model import ActorCritic
+from jetbot_rt.train.model import CRITIC, ActorCritic
 from jetbot_rt.train.out_dir import inside, writable_directory
 
 METRICS_NAME = "metrics.csv"
@@ -172,11 +172,18 @@ def _with_critic(model: ActorCritic, critic: CriticConfig | None) -> ActorCritic
     """``model``'s actor with ``critic``: ``model`` itself where its critic is of that kind
     and width, else a network with a fresh critic (or none) and ``model``'s actor weights."""
     have = model.critic_config
-    if (have is None and critic is None) or (have is not None and critic is not None and
-                                             have.state_size == critic.state_size):
+    if have is None and critic is None:
         return model
+    kept = model.actor_state_dict()
+    if have is not None and critic is not None and have.state_size == critic.state_size:
+        if have.predicts_state == critic.predicts_state:
+            return model
+        # the critic kept as trained (its width too), a state head added or dropped
+        critic = replace(have, predicts_state=critic.predicts_state)
+        kept.update({name: weight for name, weight in model.state_dict().items()
+                     if name.startswith(CRITIC + ".")})
     fresh = ActorCritic(model.config, critic)
-    fresh.load_state_dict(model.actor_state_dict(), strict=False)
+    fresh.load_state_dict(kept, strict=False)
     return fresh.eval()
 
 
@@ -242,14 +249,19 @@ class RunDirectory:
         writes files of its own there (TensorBoard)."""
         return inside(self._fds["dir"], name)
 
-    def prepare(self, resume: bool) -> Checkpoint | None:
+    def prepare(self, resume: bool, check: Callable[[Checkpoint], object] | None = None
+                ) -> Checkpoint | None:
         """The checkpoint to continue from when ``resume`` finds one (and the metrics so
-        far, checked); else a fresh start (the metrics of an earlier run are removed)."""
+        far, checked); else a fresh start (the metrics of an earlier run are removed).
+        ``check`` raises for a checkpoint this run cannot continue, before the metrics are
+        read (whose columns such a run's may not match)."""
         try:
             self._fds["dir"] = writable_directory(self.path)
             if resume and self._exists(CHECKPOINT_NAME):
                 saved = load_checkpoint(self.inside(CHECKPOINT_NAME), follow_links=False,
                                         label=self.checkpoint)
+                if check is not None:
+                    check(saved)
                 self._read_metrics()
                 return saved
             self._remove(METRICS_NAME)
