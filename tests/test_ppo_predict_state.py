@@ -162,3 +162,19 @@ def test_resume_needs_the_same_head_and_init_keeps_actor_and_critic(predict_run,
     for name, weight in model.state_dict().items():
         assert torch.equal(weight, trained[name]), name
     assert load_checkpoint(predict_run / "checkpoint.pt").model().state_head is not None
+
+
+def test_the_error_is_in_units_of_each_values_spread():
+    """A head that answers 0 (the standardised mean) scores 1 whatever each value's scale."""
+    model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8),
+                        CriticConfig(STATE, 8, predicts_state=True))
+    torch.nn.init.zeros_(model.state_head.weight)
+    torch.nn.init.zeros_(model.state_head.bias)
+    rollout = _rollout(model)
+    rollout.states[..., 0] = rollout.states[..., 0] * 1000 + 5  # one value far larger
+    options = PPOArgs(update_epochs=1, num_minibatches=1, critic="state", predict_state=1e-9,
+                      learning_rate=0.0)
+    optimizer = torch.optim.Adam(model.parameters(), lr=0.0)
+    stats = ppo.ppo_update(model, optimizer, rollout, torch.zeros(16, 2), torch.zeros(16, 2),
+                           options, np.random.default_rng(0))
+    assert stats.state_loss == pytest.approx(31 / 32, rel=1e-4)  # the unbiased std's (n-1)/n

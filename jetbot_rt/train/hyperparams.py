@@ -375,7 +375,8 @@ class PPOArgs(CurriculumOptions):
     predict_state: float = 0.0
     """With ``critic`` "state": the weight of an auxiliary loss (0: off) that trains a linear
     head on the actor's image features to predict the critic's privileged state (for seek the
-    goal's distance and bearing), the squared error averaged over its values. A dense,
+    goal's distance and bearing), each value standardised over the rollout (its mean and
+    spread), the squared error averaged over the values. A dense,
     supervised signal for the encoder to find what the task's state depends on, as Lample and
     Chaplot (2017) predicted game features from frames; the head is a training-time part,
     like the critic, and the exported actor is unchanged. No expert is involved: the target

@@ -89,7 +89,8 @@ class UpdateStats:
     approx_kl: float
     clipfrac: float
     state_loss: float | None = None
-    """The state head's mean squared error (``--predict-state``), else None."""
+    """The state head's squared error in units of each value's variance over the rollout,
+    averaged over the values (``--predict-state``; 1: no better than the mean), else None."""
 
 
 def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Rollout,
@@ -104,8 +105,9 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
     clip stays around the learner's weights at the update's start (``rollout.logprobs``) and
     each sample is weighed by their probability over the collecting weights', truncated at 1
     as IMPALA's V-trace truncates its ``rho``. With a state head (``--predict-state``) the
-    loss adds its weight times the head's squared error on ``rollout.states``; the head's
-    gradient is clipped on its own, its error's share in the encoder's with the actor's."""
+    loss adds its weight times the head's squared error on ``rollout.states``, each value
+    standardised over the rollout; the head's gradient is clipped on its own, its error's
+    share in the encoder's with the actor's."""
     obs = rollout.obs.reshape((-1, *rollout.obs.shape[2:]))
     states = None if rollout.states is None else rollout.states.reshape(
         -1, rollout.states.shape[-1])
@@ -125,6 +127,12 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
         states = None if states is None else states[kept]
         lag_weights = None if lag_weights is None else lag_weights[kept]
     batch_size = len(old_logprobs)
+    targets = None
+    if model.state_head is not None and states is not None:
+        # each value in units of its spread over the rollout: the goal's distance and bearing
+        # weigh as much as any other, not by their scale (unscaled, their share of the error
+        # was a tenth and the head learned nothing from them)
+        targets = (states - states.mean(0)) / states.std(0).clamp(min=1e-3)
     clip = options.clip_coef
     clipfracs: list[float] = []
     state_loss: torch.Tensor | None = None
@@ -152,8 +160,8 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
             policy_loss = surrogate.mean()
             value_loss = 0.5 * ((new_value - returns[mb]) ** 2).mean()
             loss = policy_loss - options.ent_coef * entropy + options.vf_coef * value_loss
-            if predicted is not None and states is not None:
-                state_loss = ((predicted - states[mb]) ** 2).mean()
+            if predicted is not None and targets is not None:
+                state_loss = ((predicted - targets[mb]) ** 2).mean()
                 loss = loss + options.predict_state * state_loss
             if options.augment > 0:
                 loss = loss + options.augment * shift_penalty(model, obs[mb], dist, new_value,
