@@ -116,3 +116,58 @@ def test_where_ctrl_c_is_ignored_it_stays_ignored():
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "dagger"])
+def test_timeouts_copy_of_the_ctrl_c_during_the_save_still_ends_with_the_policy(
+        tmp_path, monkeypatch, algo):
+    """``timeout -s INT`` signals the trainer, then its process group: a second SIGINT
+    microseconds after the first, here sent from inside the save the first one started."""
+    from jetbot_rt.train import dagger, ppo
+    from jetbot_rt.train.hyperparams import PPOArgs, dagger_args
+    from jetbot_rt.train.run_dir import Interrupted
+
+    trainer = ppo if algo == "ppo" else dagger
+    step = "update" if algo == "ppo" else "iteration"
+    save, work = trainer._Run.save, getattr(trainer._Run, step)
+    saves = []
+
+    def interrupted_step(self, *args):
+        result = work(self, *args)
+        _ctrl_c()  # the first SIGINT, at the end of the first update (iteration)
+        return result
+
+    def save_with_the_copy(self):
+        saves.append(self.progress.update)
+        if len(saves) == 1:
+            _ctrl_c()
+        save(self)
+
+    monkeypatch.setattr(trainer._Run, step, interrupted_step)
+    monkeypatch.setattr(trainer._Run, "save", save_with_the_copy)
+    if algo == "ppo":
+        args = PPOArgs(num_envs=1, num_steps=16, total_timesteps=64, update_epochs=1,
+                       workers=0, out=str(tmp_path), progress=False)
+    else:
+        args = dagger_args("seek", {"iterations": 3, "steps_per_iteration": 10,
+                                    "train_samples": 32, "num_envs": 1, "workers": 0,
+                                    "out": str(tmp_path), "progress": False})
+    with pytest.raises(Interrupted) as stop:
+        try:
+            trainer.train(args)
+        except KeyboardInterrupt:
+            pytest.fail("the copy of the Ctrl-C ended the run in its save, without the policy")
+    assert stop.value.summary["updates"] == 1 and saves == [1]
+    assert (tmp_path / "policy.onnx").stat().st_size > 0
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_ctrl_c_after_the_copys_moment_still_raises(monkeypatch):
+    from jetbot_rt.train import run_end
+
+    with run_end.duplicates_ignored():
+        _ctrl_c()  # a copy: ignored
+    monkeypatch.setattr(run_end, "DUPLICATE_S", 0.0)
+    with pytest.raises(KeyboardInterrupt), run_end.duplicates_ignored():
+        _ctrl_c()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -12,6 +12,7 @@ needs nothing but the image. docs/TRAINING.md ("Training seek by DAgger") says w
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Any
 
@@ -30,7 +31,7 @@ from jetbot_rt.train.expert import task_expert
 from jetbot_rt.train.hyperparams import DAggerArgs, ModelConfig
 from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.run_dir import Interrupted, Panel, Progress, RunDirectory, starting_model
-from jetbot_rt.train.run_end import close_workers, interrupt_noted
+from jetbot_rt.train.run_end import close_workers, duplicates_ignored, interrupt_noted
 from jetbot_rt.train.vec_env import EnvSpec, close_vector_env, make_vector_env
 from jetbot_rt.train.wrappers import Shaping
 
@@ -292,6 +293,12 @@ def train(options: DAggerArgs) -> dict[str, Any]:
 
 
 def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
+    with contextlib.ExitStack() as after_interrupt:  # a copy of the Ctrl-C: ignored till the end
+        return _train_until_done(run, options, after_interrupt)
+
+
+def _train_until_done(run: _Run, options: DAggerArgs, after_interrupt: contextlib.ExitStack
+                      ) -> dict[str, Any]:
     progress = run.progress
     # Counted in iterations: an iteration collects whole episodes, so its env steps overshoot
     # steps_per_iteration (a bar of env steps ended at 130 720 of 120 000 on seek).
@@ -308,6 +315,7 @@ def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
             run.save()
     except KeyboardInterrupt:
         interrupted = True
+        after_interrupt.enter_context(duplicates_ignored())
         run.save()
     finally:
         if run.envs is not None:

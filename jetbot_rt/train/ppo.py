@@ -20,6 +20,7 @@ surrogate by ``min(1, pi_learner / pi_collecting)``.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.ray_workers import WorkersLost
 from jetbot_rt.train.rollout import BALANCE_CAP, Rollout, RolloutSource, make_rollout_source
 from jetbot_rt.train.run_dir import Interrupted, Panel, Progress, RunDirectory, starting_model
-from jetbot_rt.train.run_end import close_workers, interrupt_noted
+from jetbot_rt.train.run_end import close_workers, duplicates_ignored, interrupt_noted
 
 METRIC_FIELDS = (
     "update", "global_step", "wall_s", "steps_per_s", "episodes", "mean_return",
@@ -358,6 +359,12 @@ def train(options: PPOArgs) -> dict[str, Any]:
 
 
 def _train(run: _Run, options: PPOArgs) -> dict[str, Any]:
+    with contextlib.ExitStack() as after_interrupt:  # a copy of the Ctrl-C: ignored till the end
+        return _train_until_done(run, options, after_interrupt)
+
+
+def _train_until_done(run: _Run, options: PPOArgs, after_interrupt: contextlib.ExitStack
+                      ) -> dict[str, Any]:
     progress, total = run.progress, options.total_timesteps
     bar = tqdm(total=total, initial=min(progress.global_step, total),
                disable=not options.progress, unit="step", dynamic_ncols=True)
@@ -376,6 +383,7 @@ def _train(run: _Run, options: PPOArgs) -> dict[str, Any]:
                 run.save()
     except KeyboardInterrupt:
         interrupted = True
+        after_interrupt.enter_context(duplicates_ignored())
         run.save()
     except WorkersLost as exc:
         lost = exc

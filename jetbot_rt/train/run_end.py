@@ -7,6 +7,13 @@ the run ended with exit 130, a checkpoint of every update and no ``policy.onnx``
 interrupt message never printed (seen on the H200 host, 2026-11-28). Here a Ctrl-C while a
 clean close waits on the workers ends them instead, and one while the last files are written
 is noted and acted on once they are: the run ends as a Ctrl-C does, with the policy.
+
+A second SIGINT close behind the first (``timeout`` signals the command and then its process
+group, which holds the command again; a supervisor may do the same) used to land in the save
+that the first one starts: exit 130, no ``policy.onnx`` and no word. After a Ctrl-C, another
+within ``DUPLICATE_S`` is taken for a copy of it (``duplicates_ignored``). Whether this is
+what cut avoid's DAgger on the H200 host short (2026-11-28: empty log, no policy, at the
+``timeout -s INT``) is not shown: here coreutils 9.1 delivered one signal in 10 of 10 tries.
 """
 
 from __future__ import annotations
@@ -15,8 +22,36 @@ import contextlib
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
+
+DUPLICATE_S = 0.5
+"""A SIGINT this soon after the Ctrl-C a run is ending on is a copy of it, not a second one
+(``timeout``'s two signals arrive microseconds apart; a person's second press takes longer)."""
+
+
+@contextlib.contextmanager
+def duplicates_ignored() -> Iterator[None]:
+    """Inside (entered as a Ctrl-C is caught): a SIGINT within ``DUPLICATE_S`` is ignored, a
+    later one raises as usual, so a save that hangs can still be left. Where Ctrl-C is not
+    Python's KeyboardInterrupt nothing changes (as ``interrupt_noted``)."""
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGINT) if main else None
+    if previous is not signal.default_int_handler:
+        yield
+        return
+    caught = time.monotonic()
+
+    def copy_or_second(signum: int, frame: Any) -> None:
+        if time.monotonic() - caught > DUPLICATE_S:
+            raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, copy_or_second)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def close_workers(close: Callable[[bool], None], interrupted: bool) -> bool:
