@@ -293,7 +293,7 @@ def train(options: DAggerArgs) -> dict[str, Any]:
 
 
 def _train(run: _Run, options: DAggerArgs) -> dict[str, Any]:
-    with contextlib.ExitStack() as after_interrupt:  # a copy of the Ctrl-C: ignored till the end
+    with contextlib.ExitStack() as after_interrupt:  # a Ctrl-C's copy: ignored till the export
         return _train_until_done(run, options, after_interrupt)
 
 
@@ -322,6 +322,7 @@ def _train_until_done(run: _Run, options: DAggerArgs, after_interrupt: contextli
             envs = run.envs
             interrupted = close_workers(lambda now: close_vector_env(envs, now), interrupted)
         bar.close()
+    after_interrupt.close()  # from here interrupt_noted notes a copy (and a second raises)
     with interrupt_noted() as noted:
         run.run.export_policy(run.model.eval(), options.task, run.max_speed)
         run.run.plot_curve("jetbot-train DAgger learning curve", curve(CURVE, run.schedule))

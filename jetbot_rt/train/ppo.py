@@ -91,7 +91,8 @@ class UpdateStats:
     clipfrac: float
     state_loss: float | None = None
     """The state head's squared error in units of each value's variance over the rollout,
-    averaged over the values (``--predict-state``; 1: no better than the mean), else None."""
+    averaged over the values (``--predict-state``; the mean's error is 1 for a value that
+    varies, 0 for one that does not), else None."""
 
 
 def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Rollout,
@@ -133,7 +134,7 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
         # each value in units of its spread over the rollout: the goal's distance and bearing
         # weigh as much as any other, not by their scale (unscaled, their share of the error
         # was a tenth and the head learned nothing from them)
-        targets = (states - states.mean(0)) / states.std(0).clamp(min=1e-3)
+        targets = (states - states.mean(0)) / states.std(0, correction=0).clamp(min=1e-3)
     clip = options.clip_coef
     clipfracs: list[float] = []
     state_loss: torch.Tensor | None = None
@@ -359,7 +360,7 @@ def train(options: PPOArgs) -> dict[str, Any]:
 
 
 def _train(run: _Run, options: PPOArgs) -> dict[str, Any]:
-    with contextlib.ExitStack() as after_interrupt:  # a copy of the Ctrl-C: ignored till the end
+    with contextlib.ExitStack() as after_interrupt:  # a Ctrl-C's copy: ignored till the export
         return _train_until_done(run, options, after_interrupt)
 
 
@@ -394,6 +395,7 @@ def _train_until_done(run: _Run, options: PPOArgs, after_interrupt: contextlib.E
         bar.close()
     if lost is not None and progress.update == first_update:
         raise lost  # nothing learned: an earlier checkpoint stays as it was
+    after_interrupt.close()  # from here interrupt_noted notes a copy (and a second raises)
     with interrupt_noted() as noted:
         summary = run.finish()
     if interrupted or noted():

@@ -63,7 +63,8 @@ def close_workers(close: Callable[[bool], None], interrupted: bool) -> bool:
     except KeyboardInterrupt:
         if interrupted:
             raise  # a second Ctrl-C while the workers are being ended: give up on them
-        close(True)
+        with duplicates_ignored():
+            close(True)
         return True
     except (OSError, EOFError) as exc:
         if interrupted:
@@ -77,7 +78,8 @@ def close_workers(close: Callable[[bool], None], interrupted: bool) -> bool:
 @contextlib.contextmanager
 def interrupt_noted() -> Iterator[Callable[[], bool]]:
     """A Ctrl-C inside is noted, not raised (the yielded function tells whether one came); a
-    second raises as usual, so a write that hangs can still be left. Where Ctrl-C is not
+    second raises as usual (one within ``DUPLICATE_S`` is the first's copy), so a write that
+    hangs can still be left. Where Ctrl-C is not
     Python's KeyboardInterrupt (ignored in a background job, another handler, not the main
     thread) nothing changes."""
     main = threading.current_thread() is threading.main_thread()
@@ -85,12 +87,12 @@ def interrupt_noted() -> Iterator[Callable[[], bool]]:
     if previous is not signal.default_int_handler:
         yield lambda: False
         return
-    received: list[Any] = []
+    received: list[float] = []
 
     def note(signum: int, frame: Any) -> None:
-        if received:
+        if received and time.monotonic() - received[0] > DUPLICATE_S:
             raise KeyboardInterrupt
-        received.append(signum)
+        received.append(time.monotonic())
 
     signal.signal(signal.SIGINT, note)
     try:
