@@ -29,7 +29,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +37,7 @@ import numpy as np
 import tomllib
 from bench_lens_recovery import TRUTHS as LENS_TRUTHS
 from bench_sim import machine
-from versions import write_results
+from versions import run_record, write_results
 
 from jetbot_rt.calibration import fit as fit_module
 from jetbot_rt.calibration.intrinsics import (
@@ -593,9 +592,7 @@ def main() -> None:
     parts = args.only.split(",")
     t0 = time.perf_counter()
     result: dict[str, Any] = {
-        "command": "python " + " ".join([Path(sys.argv[0]).as_posix(), *sys.argv[1:]]),
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "machine": machine(), "truths": TRUTHS, "lenses": LENSES}
+        **run_record(), "machine": machine(), "truths": TRUTHS, "lenses": LENSES}
     with tempfile.TemporaryDirectory() as tmp:
         where = Path(tmp)
         if "lens" in parts:

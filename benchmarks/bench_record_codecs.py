@@ -34,11 +34,8 @@ and is not measured. Writes record_codecs.json and record_codecs.md to --out.
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
 import platform
-import shlex
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -49,7 +46,7 @@ import cv2
 import numpy as np
 from bench_record import PATIENT, one_run
 from runner import RuntimeProcess
-from versions import cpu_model, write_results
+from versions import cpu_model, run_record, write_results
 
 from jetbot_rt.commands.replay import policy_config, replay
 from jetbot_rt.commands.report import compose, stderr_silenced
@@ -491,8 +488,7 @@ def main() -> None:
                "python": platform.python_version(), "opencv": cv2.__version__,
                "loadavg_1min_at_start": round(os.getloadavg()[0], 2)}
     result: dict[str, Any] = {
-        "command": shlex.join(["python", "benchmarks/bench_record_codecs.py", *sys.argv[1:]]),
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        **run_record(),
         "machine": machine,
     }
     with tempfile.TemporaryDirectory() as tmp:

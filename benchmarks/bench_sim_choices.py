@@ -17,12 +17,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import datetime
 import importlib.util
 import math
 import os
-import shlex
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -33,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 from bench_sim import machine
-from versions import write_results
+from versions import run_record, write_results
 
 from jetbot_rt.sim import appearance, looks, textures
 from jetbot_rt.sim import world as world_module
@@ -552,9 +549,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args()
     result: dict[str, Any] = {
-        "command": shlex.join(["python", "benchmarks/bench_sim_choices.py", *sys.argv[1:]]),
-        "machine": machine(), "rounds": args.rounds,
-        "date": f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"}
+        **run_record(), "machine": machine(), "rounds": args.rounds}
     steps: list[tuple[str, Callable[[], Any]]] = [
         ("sub_steps", sub_steps),
         ("physics_ms_per_tick", lambda: physics_cost(args.rounds, 90)),

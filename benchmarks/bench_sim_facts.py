@@ -15,11 +15,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import math
 import os
-import shlex
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,19 +25,17 @@ from typing import Any
 import numpy as np
 from bench_sim import machine
 from bench_sim_choices import in_rounds
-from versions import write_results
+from versions import run_record, write_results
 
 from jetbot_rt.calibration.intrinsics import Lens
 from jetbot_rt.sim.config import SimConfig
 from jetbot_rt.sim.lens import FisheyeWarp
+from jetbot_rt.sim.probes import SIZE, TICK, drive_straight, wall_push
 from jetbot_rt.sim.pybullet_import import import_pybullet
 from jetbot_rt.sim.world import JetbotWorld
 
 p = import_pybullet()
 
-TICK = 1 / 30
-SIZE = (64, 64)
-"""The image size of tests/test_sim_imperfections.py's worlds (nothing here renders)."""
 PINHOLE = SimConfig(lens="pinhole")
 STALL = 0.078
 """N m: the TT 1:48 motor's stall torque (docs/SIM.md, "Torque")."""
@@ -51,47 +46,14 @@ HEADINGS = tuple(k * math.pi / 4 for k in range(8))
 LENS_SIZES = (56, 224)
 
 
-# The measurements of tests/test_sim_imperfections.py -------------------------------------
-
-
-def straight(config: SimConfig, duty: float, seconds: float,
-             pose: tuple[float, float, float] = (-0.6, 0.0, 0.0),
-             block_xy: tuple[float, float] = (0.3, 0.0)) -> np.ndarray:
-    """The robot's (x, y, yaw) at the start and after each 30 Hz tick at ``duty`` on both
-    wheels (the test's ``straight``, with the start pose as an argument)."""
-    world = JetbotWorld(config, image_size=SIZE)
-    try:
-        world.reset(robot_pose=pose, block_xy=block_xy)
-        world.set_duty(duty, duty)
-        poses = [world.robot_pose()]
-        for _ in range(round(seconds / TICK)):
-            world.step(TICK)
-            poses.append(world.robot_pose())
-        return np.array(poses)
-    finally:
-        world.close()
-
-
-def wall_push(config: SimConfig, duty: float) -> dict[str, float]:
-    """The test's ``_wall_push``: the force (N) of the robot against the +x wall, averaged
-    over the second half of 1 s at ``duty`` (a slipping wheel's push jumps from one step to
-    the next), and the fastest wheel's speed (rad/s) at the end; started 4 cm from the wall."""
-    world = JetbotWorld(config, image_size=SIZE)
-    try:
-        world.reset(robot_pose=(1.4, 0.0, 0.0), block_xy=(-1.0, 1.0))
-        world.set_duty(duty, duty)
-        world.step(0.5)
-        forces = []
-        for _ in range(15):
-            world.step(TICK)
-            contacts = p.getContactPoints(world._robot, 0, physicsClientId=world._client)
-            forces.append(-sum(c[9] * c[7][0] for c in contacts))  # normal force along -x
-        return {"force_n": round(float(np.mean(forces)), 3),
-                "force_min_n": round(float(np.min(forces)), 3),
-                "force_max_n": round(float(np.max(forces)), 3),
-                "wheel_speed_rad_s": round(max(abs(v) for v in world.wheel_velocities()), 3)}
-    finally:
-        world.close()
+def wall_push_figures(config: SimConfig, duty: float) -> dict[str, float]:
+    """``probes.wall_push`` (tests/test_sim_imperfections.py's measurement): its mean, least
+    and largest force and the wheel's speed."""
+    forces, spin = wall_push(config, duty)
+    return {"force_n": round(float(np.mean(forces)), 3),
+            "force_min_n": round(float(np.min(forces)), 3),
+            "force_max_n": round(float(np.max(forces)), 3),
+            "wheel_speed_rad_s": round(spin, 3)}
 
 
 # 1. The ideal motor against a wall ---------------------------------------------------------
@@ -100,7 +62,7 @@ def wall_push(config: SimConfig, duty: float) -> dict[str, float]:
 def ideal_wall() -> dict[str, Any]:
     """The ideal motor (today's default ``[sim]``) pushing the wall at duty 0.2 (the doc's
     figure) and at 0.6 and 1.0."""
-    return {f"{d:g}": wall_push(SimConfig(), d) for d in (0.2, 0.6, 1.0)}
+    return {f"{d:g}": wall_push_figures(SimConfig(), d) for d in (0.2, 0.6, 1.0)}
 
 
 # 2. The DC motor against a wall, and from rest ---------------------------------------------
@@ -113,11 +75,11 @@ def dc_motor() -> dict[str, Any]:
     free-running speed (from 1 s on)."""
     wall = {}
     for d in (0.2, 0.6):
-        wall[f"{d:g}"] = {**wall_push(DC, d),
+        wall[f"{d:g}"] = {**wall_push_figures(DC, d),
                           "nominal_n": round(2 * STALL * d / WHEEL_RADIUS, 3)}
         wall[f"{d:g}"]["ratio_to_nominal"] = round(
             wall[f"{d:g}"]["force_n"] / wall[f"{d:g}"]["nominal_n"], 3)
-    ideal, slow = straight(SimConfig(), 0.1, 2.0), straight(DC, 0.1, 2.0)
+    ideal, slow = (drive_straight(c, 0.1, 2.0, pose=(-0.6, 0.0, 0.0)) for c in (SimConfig(), DC))
     start = [float(x[3, 0] - x[0, 0]) for x in (ideal, slow)]
     speeds = [float((x[-1, 0] - x[30, 0]) / ((len(x) - 31) * TICK)) for x in (ideal, slow)]
     return {"wall": wall,
@@ -191,7 +153,7 @@ def heading_bias() -> dict[str, Any]:
                          ("dc 240 Hz", dataclasses.replace(DC, physics_hz=240.0))):
         turned = []
         for yaw in HEADINGS:
-            poses = straight(config, 0.5, 2.0, pose=(0.0, 0.0, yaw), block_xy=(-1.3, -1.3)
+            poses = drive_straight(config, 0.5, 2.0, pose=(0.0, 0.0, yaw), block_xy=(-1.3, -1.3)
                              if math.cos(yaw) + math.sin(yaw) > 0 else (1.3, 1.3))
             turned.append(float(np.unwrap(poses[:, 2])[-1] - poses[0, 2]))
         out[name] = {"per_heading_rad": {f"{math.degrees(y):.0f}": round(t, 5)
@@ -291,9 +253,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args()
     result: dict[str, Any] = {
-        "command": shlex.join(["python", "benchmarks/bench_sim_facts.py", *sys.argv[1:]]),
-        "machine": machine(), "rounds": args.rounds, "physics_hz": SimConfig().physics_hz,
-        "date": f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC"}
+        **run_record(), "machine": machine(), "rounds": args.rounds,
+        "physics_hz": SimConfig().physics_hz}
     steps: list[tuple[str, Callable[[], Any]]] = [
         ("ideal_wall", ideal_wall), ("dc_motor", dc_motor), ("goal_block", goal_block),
         ("heading_bias", heading_bias), ("lens_map", lambda: lens_map(args.rounds, 5)),

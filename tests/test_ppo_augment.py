@@ -6,11 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from random_rollout import random_rollout
 
 from jetbot_rt.train import ppo
 from jetbot_rt.train.augment import random_shift
 from jetbot_rt.train.hyperparams import CriticConfig, ModelConfig, OptionError, PPOArgs
-from jetbot_rt.train.model import ActorCritic, normal_log_prob
+from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.rollout import Rollout
 
 SIZE = 16
@@ -35,26 +36,12 @@ def test_no_shift_is_the_frame_and_a_draw_is_the_same_for_the_same_seed():
                        random_shift(frames, np.random.default_rng(3)))
 
 
-def _rollout(model: ActorCritic) -> Rollout:
-    gen = torch.Generator().manual_seed(0)
-    frames = torch.randint(0, 256, (32, SIZE, SIZE, 3), generator=gen).float()
-    with torch.no_grad():
-        obs = model.preprocess(frames)
-        mu, log_std, value = model.heads(obs)
-        actions = mu + 0.3 * torch.randn(mu.shape, generator=gen)
-        logprobs = normal_log_prob(actions, mu, log_std.exp()).sum(-1)
-    shape = (16, 2)
-    return Rollout(obs.reshape(16, 2, *obs.shape[1:]), actions.reshape(16, 2, 2),
-                   logprobs.reshape(shape), torch.randn(shape, generator=gen),
-                   torch.zeros(shape), value.reshape(shape), obs[:2], torch.zeros(2), [])
-
-
 def _shift_gap(augment: float) -> float:
     """How far the policy's mean moves under shifts of the rollout's frames after ten updates
     with ``--augment`` ``augment``."""
     torch.manual_seed(1)
     model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8))
-    rollout = _rollout(model)
+    rollout = random_rollout(model, 16)
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
     options = PPOArgs(update_epochs=2, num_minibatches=2, augment=augment)
     advantages = torch.linspace(-1, 1, 32).reshape(16, 2)
@@ -112,7 +99,7 @@ def test_the_image_critic_is_regularised_and_the_asymmetric_critic_is_not():
 def test_minibatches_of_one_sample_leave_the_weights_finite():
     torch.manual_seed(1)
     model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8))
-    rollout = _rollout(model)
+    rollout = random_rollout(model, 16)
     options = PPOArgs(update_epochs=1, num_minibatches=32)  # 32 samples: one each
     advantages = torch.linspace(-1, 1, 32).reshape(16, 2)
     ppo.ppo_update(model, torch.optim.Adam(model.parameters(), lr=1e-3), rollout, advantages,
@@ -124,7 +111,7 @@ def test_an_update_with_the_asymmetric_critic_leaves_the_image_value_head_alone(
     torch.manual_seed(1)
     config = ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8)
     model = ActorCritic(config, CriticConfig(state_size=3, hidden=8))
-    plain = _rollout(ActorCritic(config))
+    plain = random_rollout(ActorCritic(config), 16)
     rollout = Rollout(*[getattr(plain, f) for f in ("obs", "actions", "logprobs", "rewards",
                                                      "dones", "values", "next_obs",
                                                      "next_done", "episodes")],

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from random_rollout import random_rollout
 from train_runner import train_main
 
 from jetbot_rt.tasks.seek import Seek
@@ -23,30 +24,16 @@ from jetbot_rt.train.hyperparams import (
     critic_config,
     ppo_args,
 )
-from jetbot_rt.train.model import ActorCritic, normal_log_prob
+from jetbot_rt.train.model import ActorCritic
 from jetbot_rt.train.rollout import Rollout
 
 SIZE = 16
 STATE = 3
 
 
-def _rollout(model: ActorCritic) -> Rollout:
-    """32 random frames whose state is each frame's mean of its three colours (what the head
-    can learn from the frame)."""
-    gen = torch.Generator().manual_seed(0)
-    frames = torch.randint(0, 256, (32, SIZE, SIZE, 3), generator=gen).float()
-    frames[:16, :, :, 0] *= 0.2  # two kinds of frames, their states well apart
-    with torch.no_grad():
-        obs = model.preprocess(frames)
-        mu, log_std, _ = model.heads(obs)
-        actions = mu + 0.3 * torch.randn(mu.shape, generator=gen)
-        logprobs = normal_log_prob(actions, mu, log_std.exp()).sum(-1)
-    states = obs.mean((2, 3)) * 4
-    shape = (16, 2)
-    return Rollout(obs.reshape(16, 2, *obs.shape[1:]), actions.reshape(16, 2, 2),
-                   logprobs.reshape(shape), torch.randn(shape, generator=gen),
-                   torch.zeros(shape), torch.zeros(shape), obs[:2], torch.zeros(2), [],
-                   states=states.reshape(16, 2, STATE), next_state=states[:2])
+def _colour_means(obs: torch.Tensor) -> torch.Tensor:
+    """A frame's state: its three colours' means (what the head can learn from the frame)."""
+    return obs.mean((2, 3))
 
 
 def _state_error(weight: float, updates: int = 30) -> tuple[float, float]:
@@ -55,7 +42,7 @@ def _state_error(weight: float, updates: int = 30) -> tuple[float, float]:
     torch.manual_seed(1)
     model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8),
                         CriticConfig(STATE, 8, predicts_state=True))
-    rollout = _rollout(model)
+    rollout = random_rollout(model, 16, state_of=_colour_means)
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
     options = PPOArgs(update_epochs=2, num_minibatches=2, critic="state", predict_state=weight)
     advantages = torch.zeros(16, 2)
@@ -167,7 +154,7 @@ def test_the_error_is_in_units_of_each_values_spread():
                         CriticConfig(STATE, 8, predicts_state=True))
     torch.nn.init.zeros_(model.state_head.weight)
     torch.nn.init.zeros_(model.state_head.bias)
-    rollout = _rollout(model)
+    rollout = random_rollout(model, 16, state_of=_colour_means)
     rollout.states[..., 0] = rollout.states[..., 0] * 1000 + 5  # one value far larger
     options = PPOArgs(update_epochs=1, num_minibatches=1, critic="state", predict_state=1e-9,
                       learning_rate=0.0)
@@ -180,7 +167,7 @@ def test_the_error_is_in_units_of_each_values_spread():
 def test_a_rollout_of_one_step_gives_a_finite_error():
     model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8),
                         CriticConfig(STATE, 8, predicts_state=True))
-    whole = _rollout(model)
+    whole = random_rollout(model, 16, state_of=_colour_means)
     one = Rollout(*(t[:1, :1] for t in (whole.obs, whole.actions, whole.logprobs,
                                         whole.rewards, whole.dones, whole.values)),
                   whole.obs[0, :1], torch.zeros(1), [], states=whole.states[:1, :1],

@@ -14,11 +14,10 @@ from jetbot_rt.sim.config import SimConfig
 
 pytest.importorskip("pybullet")
 
+from jetbot_rt.sim.probes import SIZE, TICK, drive_straight, wall_push
 from jetbot_rt.sim.world import JetbotWorld, pixel_centred
 
-TICK = 1 / 30
 SUBSTEP = 1 / 240
-SIZE = (64, 64)
 DUTIES = [(0.3, 0.3)] * 12 + [(0.3, -0.2)] * 6  # drives, then turns: the view moves
 
 
@@ -51,37 +50,24 @@ def ideal():
     return run(PINHOLE)
 
 
-def straight(config: SimConfig, duty: float, seconds: float) -> np.ndarray:
-    world = JetbotWorld(config, image_size=SIZE)
-    try:
-        world.set_duty(duty, duty)
-        poses = [world.robot_pose()]
-        for _ in range(round(seconds / TICK)):
-            world.step(TICK)
-            poses.append(world.robot_pose())
-        return np.array(poses)
-    finally:
-        world.close()
-
-
 # --- dynamics -----------------------------------------------------------------------------
 
 def test_weak_right_wheel_curves_right_at_the_kinematic_rate():
-    poses = straight(sim(wheel_gain=[1.0, 0.85]), 0.3, 2.0)
+    poses = drive_straight(sim(wheel_gain=[1.0, 0.85]), 0.3, 2.0)
     yaw = np.unwrap(poses[:, 2])
     rate = (yaw[-1] - yaw[15]) / ((len(yaw) - 16) * TICK)  # after the motor lag
     # wheel speeds 20 * 0.3 * (1, 0.85) rad/s * 0.03 m over the 0.11 m track
     expected = 20 * 0.3 * 0.03 * (0.85 - 1.0) / 0.11
     assert rate == pytest.approx(expected, rel=0.05)  # -0.245 rad/s: clockwise, to the right
-    assert straight(SimConfig(), 0.3, 2.0)[-1, 2] == pytest.approx(0.0, abs=0.005)
+    assert drive_straight(SimConfig(), 0.3, 2.0)[-1, 2] == pytest.approx(0.0, abs=0.005)
 
 
 def test_deadband_above_the_duty_keeps_the_robot_still():
-    still = straight(sim(deadband=0.12), 0.1, 2.0)
-    resting = straight(SimConfig(), 0.0, 2.0)
+    still = drive_straight(sim(deadband=0.12), 0.1, 2.0)
+    resting = drive_straight(SimConfig(), 0.0, 2.0)
     assert np.abs(still - resting).max() < 1e-4  # as if no duty were written
     # above the dead-band the speed is motor_gain * (duty - deadband): 20 * 0.05 * 0.03 m/s
-    slow = straight(sim(deadband=0.05), 0.1, 2.0)
+    slow = drive_straight(sim(deadband=0.05), 0.1, 2.0)
     speed = (slow[-1, 0] - slow[15, 0]) / ((len(slow) - 16) * TICK)
     assert speed == pytest.approx(0.03, rel=0.08)
 
@@ -106,24 +92,9 @@ def test_command_latency_delays_the_first_motion_by_that_time(latency):
 
 
 def _wall_push(config: SimConfig, duty: float) -> tuple[float, float]:
-    """Force (N) of the robot against the +x wall, averaged over the second half of 1 s at
-    ``duty`` (a slipping wheel's push jumps between 0 and 12 N from one step to the next),
-    and the fastest wheel's speed (rad/s) at the end."""
-    import pybullet as p
-
-    world = JetbotWorld(config, image_size=SIZE)
-    try:
-        world.reset(robot_pose=(1.4, 0.0, 0.0), block_xy=(-1.0, 1.0))  # 4 cm from the wall
-        world.set_duty(duty, duty)
-        world.step(0.5)
-        forces = []
-        for _ in range(15):
-            world.step(1 / 30)
-            contacts = p.getContactPoints(world._robot, 0, physicsClientId=world._client)
-            forces.append(-sum(c[9] * c[7][0] for c in contacts))  # normal force along -x
-        return float(np.mean(forces)), max(abs(v) for v in world.wheel_velocities())
-    finally:
-        world.close()
+    """The mean force (N) against the wall over the probe's ticks, and the wheel's speed."""
+    forces, spin = wall_push(config, duty)
+    return float(np.mean(forces)), spin
 
 
 def test_stall_torque_makes_torque_scale_with_duty():
@@ -139,8 +110,8 @@ def test_stall_torque_makes_torque_scale_with_duty():
     ideal_force, ideal_spin = _wall_push(SimConfig(), 0.2)
     assert ideal_force > 1.5 * high and ideal_spin > 1.0
     # the gentler start at a low duty; free running, the same speed as the ideal motor
-    ideal = straight(SimConfig(), 0.1, 2.0)
-    slow = straight(dc, 0.1, 2.0)
+    ideal = drive_straight(SimConfig(), 0.1, 2.0)
+    slow = drive_straight(dc, 0.1, 2.0)
     assert slow[3, 0] - slow[0, 0] < 0.6 * (ideal[3, 0] - ideal[0, 0])  # after 0.1 s
     speeds = [(x[-1, 0] - x[30, 0]) / ((len(x) - 31) * TICK) for x in (ideal, slow)]
     assert speeds[1] == pytest.approx(speeds[0], rel=0.05)

@@ -12,41 +12,24 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import torch
+from random_rollout import random_rollout
 from train_runner import train_main
 
 from jetbot_rt.train import ppo
 from jetbot_rt.train.hyperparams import ModelConfig, PPOArgs
 from jetbot_rt.train.model import ActorCritic, normal_log_prob
-from jetbot_rt.train.rollout import Rollout, WorkerRollouts
+from jetbot_rt.train.rollout import WorkerRollouts
 
 pytest.importorskip("pybullet")
 
 SIZE = 16
 
 
-def _rollout(model: ActorCritic, behaviour_shift: float | None) -> Rollout:
-    """A 4-step, 2-env rollout of random frames with the model's own actions; with
-    ``behaviour_shift`` the collecting weights' log-probabilities are the model's plus it."""
-    gen = torch.Generator().manual_seed(0)
-    frames = torch.randint(0, 256, (8, SIZE, SIZE, 3), generator=gen).float()
-    with torch.no_grad():
-        obs = model.preprocess(frames)
-        mu, log_std, value = model.heads(obs)
-        actions = mu + 0.3 * torch.randn(mu.shape, generator=gen)
-        logprobs = normal_log_prob(actions, mu, log_std.exp()).sum(-1)
-    shape = (4, 2)
-    behaviour = None if behaviour_shift is None else (logprobs + behaviour_shift).reshape(shape)
-    return Rollout(obs.reshape(4, 2, *obs.shape[1:]), actions.reshape(4, 2, 2),
-                   logprobs.reshape(shape), torch.randn(shape, generator=gen),
-                   torch.zeros(shape), value.reshape(shape), obs[:2], torch.zeros(2), [],
-                   behaviour_logprobs=behaviour)
-
-
 def _updated(behaviour_shift: float | None, epochs: int = 2,
              minibatches: int = 2) -> tuple[dict[str, torch.Tensor], float]:
     torch.manual_seed(1)
     model = ActorCritic(ModelConfig(image_size=SIZE, channels=(4, 4, 4), hidden=8))
-    rollout = _rollout(model, behaviour_shift)
+    rollout = random_rollout(model, 4, behaviour_shift=behaviour_shift)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-2)
     options = PPOArgs(update_epochs=epochs, num_minibatches=minibatches)
     advantages = torch.linspace(-1, 1, 8).reshape(4, 2)
