@@ -47,6 +47,21 @@ def test_outcome_bonus_and_episode_statistics_carry_the_true_return():
         env.close()
 
 
+def test_step_penalty_is_paid_every_step_and_the_true_return_is_unchanged():
+    env = make_train_env("seek", None, Shaping("none", success_bonus=7.0, step_penalty=0.25))
+    try:
+        env.reset(seed=0)
+        rewards = [env.step(np.zeros(2))[1] for _ in range(3)]
+        assert rewards == [pytest.approx(-0.25)] * 3
+        gx, gy = env.unwrapped.scene.piece("goal").xy
+        env.reset(seed=0, options={"robot_pose": (gx - 0.13, gy, 0.0)})
+        _, reward, terminated, _, info = env.step(np.zeros(2))
+        assert terminated and reward == pytest.approx(1.0 + 7.0 - 0.25)
+        assert info["episode"]["r"] == pytest.approx(1.0)
+    finally:
+        env.close()
+
+
 def test_keep_info_passes_on_only_the_keys_asked_for_and_the_rest_unchanged():
     env = KeepInfo(make_train_env("forward", None, Shaping("none")), ("distance", "episode"))
     full = make_train_env("forward", None, Shaping("none"))

@@ -37,7 +37,7 @@ from jetbot_rt.train.wrappers import Shaping
 
 METRIC_FIELDS = ("iteration", "global_step", "wall_s", "collect_s", "regress_s", "dataset",
                  "beta", "episodes", "success_rate", "expert_success_rate", "loss")
-NO_SHAPING = Shaping("none", 0.0, 0.0, 0.0, 0.0)
+NO_SHAPING = Shaping("none")
 OUTCOME_INFO = ("is_success",)
 """The info keys DAgger reads besides the expert's inputs (its ``reads``)."""
 EXPERT_SETTINGS = ("stop_distance", "min_forward", "search_bearing_deg", "search_left",

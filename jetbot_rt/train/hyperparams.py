@@ -404,6 +404,11 @@ class PPOArgs(CurriculumOptions):
     """Added on the step that ends an episode with success (tasks with early_end)."""
     fail_penalty: float = 0.0
     """Subtracted on the step that ends an episode as failed (goal pushed away)."""
+    step_penalty: float = 0.0
+    """Subtracted on every step (Habitat's slack reward, Savva et al. 2019; 0: off). seek's
+    PPO policies stood still where the goal was unclear: that cost nothing, and with the
+    mean action it is where they stayed (24 of the 74 held-out misses of one policy never
+    left the start by 0.2 m, ``benchmarks/seek_misses.py``)."""
     reward_clip: float = 10.0
     """Clip of the scaled reward (reward / running std of the discounted return)."""
     checkpoint_every: int = 5
@@ -431,7 +436,7 @@ class PPOArgs(CurriculumOptions):
     @property
     def shaping(self) -> Shaping:
         return Shaping(self.reward_transform, self.shaping_coef, self.aim_coef,
-                       self.success_bonus, self.fail_penalty)
+                       self.success_bonus, self.fail_penalty, self.step_penalty)
 
     @property
     def samples_in_workers(self) -> bool:

@@ -3,9 +3,10 @@
 The registered envs return the task's own reward (what ``eval`` reports); everything a
 trainer adds to learn faster lives here, so any trainer (ours, Stable-Baselines3) can reuse
 it. Per env: ``RecordEpisodeStatistics`` (the true return, in ``info["episode"]``), an
-optional ``symlog`` of the task reward, potential-based progress and aim shaping, and a bonus
-/ penalty on the step that succeeds / fails. Reward normalisation (running std of the
-discounted return) and clipping are vector wrappers, see ``normalize_rewards``.
+optional ``symlog`` of the task reward, potential-based progress and aim shaping, a bonus
+/ penalty on the step that succeeds / fails and a cost per step. Reward normalisation
+(running std of the discounted return) and clipping are vector wrappers, see
+``normalize_rewards``.
 """
 
 from __future__ import annotations
@@ -78,6 +79,18 @@ class OutcomeBonus(gym.Wrapper):
         if terminated and info.get("failed"):
             reward -= self.fail_penalty
         return obs, reward, terminated, truncated, info
+
+
+class StepPenalty(gym.RewardWrapper):
+    """Subtracts ``penalty`` on every step: Habitat's slack reward (Savva et al. 2019), a
+    cost of time, so that standing still where the goal is unclear is no longer free."""
+
+    def __init__(self, env: gym.Env, penalty: float) -> None:
+        super().__init__(env)
+        self.penalty = penalty
+
+    def reward(self, reward: SupportsFloat) -> float:
+        return float(reward) - self.penalty
 
 
 class KeepInfo(gym.Wrapper):
@@ -153,6 +166,7 @@ class Shaping:
     aim_coef: float = 0.0
     success_bonus: float = 0.0
     fail_penalty: float = 0.0
+    step_penalty: float = 0.0
 
     def __post_init__(self) -> None:
         if self.reward_transform not in REWARD_TRANSFORMS:
@@ -177,6 +191,8 @@ def make_train_env(task: str, config: Config | None, shaping: Shaping, *,
         env = PotentialShaping(env, "aim_error", shaping.aim_coef)
     if shaping.success_bonus or shaping.fail_penalty:
         env = OutcomeBonus(env, shaping.success_bonus, shaping.fail_penalty)
+    if shaping.step_penalty:
+        env = StepPenalty(env, shaping.step_penalty)
     return env
 
 
