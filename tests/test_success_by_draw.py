@@ -1,0 +1,48 @@
+"""benchmarks/success_by_draw.py's binning and its chance of a gap, on made-up episodes."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _module() -> ModuleType:
+    spec = importlib.util.spec_from_file_location(
+        "success_by_draw", ROOT / "benchmarks" / "success_by_draw.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_factor_that_decides_success_has_a_full_gap_and_no_chance():
+    sbd = _module()
+    values = [float(v) for v in np.linspace(0.0, 0.3, 100)]
+    passed = np.array([v < 0.15 for v in values], dtype=float)
+    labels, which = sbd.bins(values)
+    assert len(labels) == 4 and np.bincount(which).tolist() == [25, 25, 25, 25]
+    observed = sbd.gap(which, passed, len(labels))
+    assert observed == 1.0
+    assert sbd.chance(which, passed, len(labels), observed, np.random.default_rng(0)) < 0.001
+
+
+def test_a_factor_unrelated_to_success_is_often_matched_by_chance():
+    sbd = _module()
+    rng = np.random.default_rng(3)
+    values = [float(v) for v in rng.uniform(0, 1, 100)]
+    passed = (rng.uniform(0, 1, 100) < 0.5).astype(float)
+    labels, which = sbd.bins(values)
+    observed = sbd.gap(which, passed, len(labels))
+    assert sbd.chance(which, passed, len(labels), observed, np.random.default_rng(0)) > 0.05
+
+
+def test_names_and_lists_are_binned_by_value_and_by_their_smallest_element():
+    sbd = _module()
+    assert sbd.scalar([0.9, 1.1]) == 0.9 and sbd.scalar(True) == "True"
+    assert sbd.scalar("wood") == "wood" and sbd.scalar(None) is None
+    labels, which = sbd.bins(["wood", "tiles", "wood", "rug"])
+    assert labels == ["rug", "tiles", "wood"] and which.tolist() == [2, 1, 2, 0]
