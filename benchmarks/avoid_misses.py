@@ -6,13 +6,12 @@ avoid fails (``tasks/avoid.py``): a touch, a circle (``min_path`` driven but nev
     python benchmarks/avoid_misses.py --policy P.onnx --eval randomized.json [--episodes N]
 
 Prints one line a miss and the counts; the replay uses the evaluation's own episode code
-(``evaluate.run_episode``), so a miss that does not fail again is printed as "passed now".
+and ablation, so a miss that does not fail again is printed as "passed now".
 """
 
 from __future__ import annotations
 
-import numpy as np
-from replay_misses import main
+from replay_misses import Episode, main
 
 
 def kind(info: dict, task) -> str:
@@ -25,7 +24,7 @@ def kind(info: dict, task) -> str:
     return "short"
 
 
-def sort(env, info: dict, start: np.ndarray) -> tuple[str, str]:
+def sort(env, info: dict, episode: Episode) -> tuple[str, str]:
     return (kind(info, env.unwrapped.task),
             f"path {info['path_length']:.2f} m, reach {info['reach']:.2f} m")
 

@@ -1,11 +1,12 @@
 """Replays the episodes ``jetbot-train eval`` reported as misses (the seeds of its ``--json``
-output absent from ``successes``) with the evaluation's own environment, and sorts each with
-a task's own rule: what ``avoid_misses.py`` and ``seek_misses.py`` share."""
+output absent from ``successes``) with the evaluation's own environment and ablation, and
+sorts each with a task's own rule: what ``avoid_misses.py`` and ``seek_misses.py`` share."""
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -15,35 +16,58 @@ from jetbot_rt.config.sections import load_config
 from jetbot_rt.train.env import JetbotEnv
 from jetbot_rt.train.evaluate import load_policy
 
-Sort = Callable[[JetbotEnv, dict, np.ndarray], tuple[str, str]]
-"""(the env, the last step's info, the robot's start xy) -> (the kind, a line of detail)."""
+
+@dataclass(frozen=True)
+class Episode:
+    """What a replayed episode did, besides its last step's info."""
+
+    start: np.ndarray
+    """The robot's xy at the reset."""
+    farthest: float
+    """m; the farthest the robot got from ``start`` at any step."""
+    mean_command: np.ndarray
+    """The policy's mean output (left, right) over the episode."""
+
+
+Sort = Callable[[JetbotEnv, dict, Episode], tuple[str, str]]
+"""(the env, the last step's info, the episode) -> (the kind, a line of detail)."""
+
+
+def replay(env: JetbotEnv, policy: Any, seed: int) -> tuple[dict, Episode]:
+    obs, info = env.reset(seed=seed)
+    start = np.asarray(info["pose"][:2], dtype=float)
+    farthest, commands, done = 0.0, [], False
+    while not done:
+        command = policy.infer(obs)
+        commands.append(np.asarray(command, dtype=float).reshape(-1))
+        obs, _, terminated, truncated, info = env.step(command)
+        farthest = max(farthest, float(np.linalg.norm(np.asarray(info["pose"][:2]) - start)))
+        done = terminated or truncated
+    return info, Episode(start, farthest, np.mean(commands, axis=0))
 
 
 def main(task: str, doc: str, sort: Sort) -> None:
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--policy", required=True)
     parser.add_argument("--eval", required=True, help="an eval --json output of this policy")
-    parser.add_argument("--episodes", type=int, default=100, help="the evaluation's count")
+    parser.add_argument("--episodes", type=int, default=None,
+                        help="the evaluation's count (default: its own)")
     parser.add_argument("--config", default=None)
     args = parser.parse_args()
     report: Any = read_json(args.eval, "evaluation", 1 << 20)
     report = report.get("heldout", report)  # a device script's {"heldout": ..., "blank": ...}
     first = report["seed"]
-    misses = sorted(set(range(first, first + args.episodes)) - set(report["successes"]))
+    count = args.episodes or report["episodes"]
+    misses = sorted(set(range(first, first + count)) - set(report["successes"]))
     config = load_config(args.config)
-    policy = load_policy(args.policy, config)
+    policy = load_policy(args.policy, config, ablate=report.get("ablate"))
     env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
                     image_size=(policy.spec.width, policy.spec.height))
     counts: dict[str, int] = {}
     try:
         for seed in misses:
-            obs, info = env.reset(seed=seed)
-            start = np.asarray(info["pose"][:2], dtype=float)
-            done = False
-            while not done:
-                obs, _, terminated, truncated, info = env.step(policy.infer(obs))
-                done = terminated or truncated
-            found, detail = sort(env, info, start)
+            info, episode = replay(env, policy, seed)
+            found, detail = sort(env, info, episode)
             counts[found] = counts.get(found, 0) + 1
             print(f"{seed}: {found} ({detail})", flush=True)
     finally:

@@ -5,11 +5,13 @@ block pushed less than ``max_block_shift``):
 
 - "pushed": the goal block pushed too far (the episode's failure);
 - "at the goal, moving": within ``success_distance`` but not stopped at the end;
+- "stayed at the start": never 0.2 m from where it started, at any step;
 - "at a distractor": ended nearer a green or blue block than the goal, within 0.25 m of it
   (it drove to the wrong block: a seeing miss);
-- "near the goal": within 0.4 m of the goal (stopped short or wandered near it);
-- "stayed at the start": never 0.2 m from where it started;
+- "near the goal": ended within 0.4 m of the goal (stopped short or wandered near it);
 - "elsewhere": anywhere else (lost, circling, out of the area).
+
+Each line also gives the policy's mean command (left, right) over the episode.
 
     python benchmarks/seek_misses.py --policy P.onnx --eval heldout.json [--episodes N]
 
@@ -22,7 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from replay_misses import main
+from replay_misses import Episode, main
 
 from jetbot_rt.tasks.scene import Block
 
@@ -31,32 +33,33 @@ NEAR_GOAL = 0.4
 LEFT_THE_START = 0.2
 
 
-def kind(info: dict, task, distractor: float, moved: float) -> str:
+def kind(info: dict, task, distractor: float, farthest: float) -> str:
     if info["is_success"]:
         return "passed now"
     if info["failed"]:
         return "pushed"
     if info["distance"] < task.success_distance:
         return "at the goal, moving"
+    if farthest < LEFT_THE_START:  # before "near the goal": a goal may start 0.35 m away
+        return "stayed at the start"
     if distractor < min(AT_DISTRACTOR, info["distance"]):
         return "at a distractor"
     if info["distance"] < NEAR_GOAL:
         return "near the goal"
-    if moved < LEFT_THE_START:
-        return "stayed at the start"
     return "elsewhere"
 
 
-def sort(env, info: dict, start: np.ndarray) -> tuple[str, str]:
+def sort(env, info: dict, episode: Episode) -> tuple[str, str]:
     robot = np.asarray(info["pose"][:2], dtype=float)
     others = [p.xy for p in env.unwrapped.scene.pieces
               if isinstance(p, Block) and p.color in ("green", "blue")]
     distractor = min((float(np.linalg.norm(robot - np.asarray(xy))) for xy in others),
                      default=math.inf)
-    moved = float(np.linalg.norm(robot - start))
-    return (kind(info, env.unwrapped.task, distractor, moved),
-            f"goal {info['distance']:.2f} m, nearest distractor {distractor:.2f} m, "
-            f"{moved:.2f} m from the start, speed {info['speed']:.3f} m/s")
+    left, right = episode.mean_command
+    return (kind(info, env.unwrapped.task, distractor, episode.farthest),
+            f"goal {info['distance']:.2f} m, nearest distractor {distractor:.2f} m, at most "
+            f"{episode.farthest:.2f} m from the start, speed {info['speed']:.3f} m/s, mean "
+            f"command ({left:.2f}, {right:.2f})")
 
 
 if __name__ == "__main__":

@@ -25,10 +25,15 @@ from jetbot_rt.train.env import JetbotEnv
 SKIP = ("seed", "look_seed")
 """Per-episode noise seeds: no factor."""
 MIN_BIN = 5
+FEW = 6
 SHUFFLES = 2000
 
 
 def scalar(value: Any) -> float | str | None:
+    """A draw as one number or a name; a list of numbers by its smallest element (a weak
+    wheel's gain, a colour's darkest channel); ``None`` (a piece left out) as "none"."""
+    if value is None:
+        return "none"
     if isinstance(value, (bool, str)):
         return str(value)
     if isinstance(value, (int, float)):
@@ -39,13 +44,14 @@ def scalar(value: Any) -> float | str | None:
 
 
 def bins(values: list[float | str]) -> tuple[list[str], np.ndarray]:
-    """The bins' labels and each episode's bin: quartiles of numbers, or one bin a value."""
-    if all(isinstance(v, float) for v in values):
+    """The bins' labels and each episode's bin: quartiles of numbers, or one bin a value (a
+    name, or a number with at most ``FEW`` values: a count of lamps)."""
+    if all(isinstance(v, float) for v in values) and len(set(values)) > FEW:
         x = np.asarray(values, dtype=float)
         edges = np.unique(np.quantile(x, [0.0, 0.25, 0.5, 0.75, 1.0]))
         which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
         return [f"{edges[i]:.3g}-{edges[i + 1]:.3g}" for i in range(len(edges) - 1)], which
-    labels = sorted({str(v) for v in values})
+    labels = [str(v) for v in sorted(set(values), key=lambda v: (isinstance(v, str), v))]
     return labels, np.array([labels.index(str(v)) for v in values])
 
 
@@ -59,10 +65,11 @@ def gap(which: np.ndarray, passed: np.ndarray, size: int) -> float:
 
 def chance(which: np.ndarray, passed: np.ndarray, size: int, observed: float,
            rng: np.random.Generator) -> float:
-    """The share of ``SHUFFLES`` random relabellings of success with a gap at least as large:
-    how often chance alone makes such a gap on these many episodes."""
-    return float(np.mean([gap(which, rng.permutation(passed), size) >= observed
-                          for _ in range(SHUFFLES)]))
+    """How often chance alone makes such a gap on these episodes: of ``SHUFFLES`` random
+    relabellings of success, the share with a gap at least as large (counting the observed
+    one, so never 0)."""
+    hits = sum(gap(which, rng.permutation(passed), size) >= observed for _ in range(SHUFFLES))
+    return (hits + 1) / (SHUFFLES + 1)
 
 
 def main() -> None:
@@ -81,11 +88,13 @@ def main() -> None:
     passed = [seed in set(report["successes"]) for seed in seeds]
     env = JetbotEnv(args.task, load_config(args.config))
     draws: dict[str, list[Any]] = {}
+    draws_raw: dict[str, list[Any]] = {}
     try:
         for seed in seeds:
             env.reset(seed=seed)
             for name, value in env.unwrapped.sim_params.items():
                 draws.setdefault(name, []).append(scalar(value))
+                draws_raw.setdefault(name, []).append(value)
     finally:
         env.close()
     ok = np.asarray(passed, dtype=float)
@@ -94,6 +103,10 @@ def main() -> None:
     for name, values in draws.items():
         if name in SKIP or any(v is None for v in values) or len({*map(str, values)}) < 2:
             continue
+        if "none" in values and any(isinstance(v, float) for v in values):
+            values = ["none" if v == "none" else "drawn" for v in values]  # a piece or none
+        elif any(isinstance(v, list) for v in draws_raw[name]):
+            name = f"{name} (smallest)"
         labels, which = bins(values)
         observed = gap(which, ok, len(labels))
         cells = ", ".join(f"{label}: {int(ok[which == i].sum())}/{int(np.sum(which == i))}"

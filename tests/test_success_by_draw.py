@@ -40,9 +40,13 @@ def test_a_factor_unrelated_to_success_is_often_matched_by_chance():
     assert sbd.chance(which, passed, len(labels), observed, np.random.default_rng(0)) > 0.05
 
 
-def test_names_and_lists_are_binned_by_value_and_by_their_smallest_element():
+def test_names_counts_and_lists_are_binned_by_value_and_by_their_smallest_element():
     sbd = _module()
     assert sbd.scalar([0.9, 1.1]) == 0.9 and sbd.scalar(True) == "True"
-    assert sbd.scalar("wood") == "wood" and sbd.scalar(None) is None
+    assert sbd.scalar("wood") == "wood" and sbd.scalar(None) == "none"
+    assert sbd.scalar({"a": 1}) is None
     labels, which = sbd.bins(["wood", "tiles", "wood", "rug"])
     assert labels == ["rug", "tiles", "wood"] and which.tolist() == [2, 1, 2, 0]
+    lamps = [0.0, 1.0, 2.0, 3.0] * 10  # a count: one bin a value, not quartiles
+    labels, which = sbd.bins(lamps)
+    assert labels == ["0.0", "1.0", "2.0", "3.0"] and which.tolist() == [0, 1, 2, 3] * 10

@@ -405,10 +405,11 @@ class PPOArgs(CurriculumOptions):
     fail_penalty: float = 0.0
     """Subtracted on the step that ends an episode as failed (goal pushed away)."""
     step_penalty: float = 0.0
-    """Subtracted on every step (Habitat's slack reward, Savva et al. 2019; 0: off). seek's
-    PPO policies stood still where the goal was unclear: that cost nothing, and with the
-    mean action it is where they stayed (24 of the 74 held-out misses of one policy never
-    left the start by 0.2 m, ``benchmarks/seek_misses.py``)."""
+    """Subtracted on every step (Habitat's slack reward, Savva et al. 2019; 0: off). Tried
+    because standing still costs nothing: many held-out misses of seek's PPO policies never
+    left the start (``benchmarks/seek_misses.py``); on seek it did not help
+    (``benchmarks/results/ppo_freeze_h200/``). Where a push ends the episode, a cost per step
+    also makes ending early by a push cheaper than waiting out the time."""
     reward_clip: float = 10.0
     """Clip of the scaled reward (reward / running std of the discounted return)."""
     checkpoint_every: int = 5
@@ -469,6 +470,8 @@ class PPOArgs(CurriculumOptions):
             raise OptionError("ray_max_restarts", f"must be >= 0, got {self.ray_max_restarts}")
         if self.augment < 0:
             raise OptionError("augment", f"must be >= 0, got {self.augment}")
+        if self.step_penalty < 0:
+            raise OptionError("step_penalty", f"must be >= 0, got {self.step_penalty}")
         if self.predict_state < 0:
             raise OptionError("predict_state", f"must be >= 0, got {self.predict_state}")
         if self.predict_state > 0 and self.critic != "state":
