@@ -89,3 +89,32 @@ def test_the_config_builder_keeps_each_wheels_trim_and_sign_on_its_own_side():
 def test_too_few_action_values_are_a_fault_too(mu):
     with pytest.raises(Fault, match="expected 2"):
         ActionPipeline().duties(mu)
+
+
+class TestDeadbandLift:
+    """``[actions] deadband``: every duty that is not zero is lifted by it, zero stays zero."""
+
+    @pytest.mark.parametrize(("mu", "expected"), [
+        ((0.4, -0.4), (0.45, -0.45)),  # 0.2 of duty each way, plus 0.25
+        ((0.0, 0.0), (0.0, 0.0)),  # a stop is never lifted
+        ((1e-6, -1e-6), (0.25 + 5e-7, -0.25 - 5e-7)),
+        ((1.0, -1.0), (0.75, -0.75)),
+    ])
+    def test_lift_by_sign(self, mu, expected):
+        pipeline = ActionPipeline(max_speed=0.5, deadband=0.25)
+        assert pipeline.duties(mu) == pytest.approx(expected)
+
+    def test_lifted_duties_stay_in_the_unit_range(self):
+        pipeline = ActionPipeline(max_speed=1.0, trim=(1.0, 2.0), deadband=0.5)
+        assert pipeline.duties((0.9, -0.9)) == (1.0, -1.0)
+
+    def test_after_trim_and_sign(self):
+        pipeline = ActionPipeline(max_speed=0.5, trim=(0.5, 1.0), sign=(-1, 1), deadband=0.1)
+        assert pipeline.duties((1.0, 1.0)) == pytest.approx((-0.35, 0.6))
+
+    def test_from_the_config_off_by_default(self):
+        from jetbot_rt.config.sections import ActionsConfig
+
+        assert ActionPipeline.from_config(ActionsConfig()).deadband == 0.0
+        lifted = ActionPipeline.from_config(ActionsConfig(max_speed=0.5, deadband=0.2))
+        assert lifted.duties((0.5, 0.0)) == pytest.approx((0.45, 0.0))

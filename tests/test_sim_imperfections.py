@@ -72,6 +72,16 @@ def test_deadband_above_the_duty_keeps_the_robot_still():
     assert speed == pytest.approx(0.03, rel=0.08)
 
 
+def test_a_duty_lifted_by_the_deadband_drives_as_on_a_motor_without_one():
+    from jetbot_rt.runtime.actions import ActionPipeline
+
+    duty = ActionPipeline(max_speed=0.5, deadband=0.12).duties((0.2, 0.2))[0]  # 0.1 + 0.12
+    lifted = drive_straight(sim(deadband=0.12), duty, 2.0)
+    ideal = drive_straight(SimConfig(), 0.1, 2.0)
+    assert np.abs(lifted - ideal).max() < 1e-3
+    assert ideal[-1, 0] - ideal[0, 0] > 0.05  # it did drive (0.03 m/s for 2 s)
+
+
 def _first_motion(config: SimConfig) -> float:
     world = JetbotWorld(config, image_size=SIZE)
     try:

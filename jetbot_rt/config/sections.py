@@ -125,6 +125,11 @@ class ActionsConfig:
                        "two values, each 1 or -1"),
     )
     """[left, right]: -1 for a motor wired the wrong way round."""
+    deadband: float = field(default=0.0, metadata=within(0, 0.5))
+    """Duty below which a wheel does not turn (``jetbot-rt calibrate`` fits it, as ``[sim]
+    deadband`` in its output). Every duty that is not zero is lifted by it, ``sign(d) * (|d|
+    + deadband)``, so a wheel's speed follows the command as on a motor without a dead-band;
+    zero stays zero. 0 (the default): off."""
 
 
 @dataclass
