@@ -160,6 +160,7 @@ class Calibration(Runtime):
         super().__init__(args)
         self.config.actions.max_speed = 1.0  # the programme's duties are the duties
         self.config.actions.trim = [1.0, 1.0]  # the robot as it is, untrimmed
+        self.config.actions.deadband = 0.0  # unlifted: the dead-band is what it measures
         sim = self.config.sim
         geometry = _geometry(args, sim)
         self.programme = Programme(geometry, limits, FRAME_SIZE, self.config.loop.rate_hz)
