@@ -40,6 +40,7 @@ OUT_OF_RANGE = {
     ("actions", "max_speed"): 1.5,
     ("actions", "trim"): [1.0, 2.5],
     ("actions", "sign"): [1, 0],
+    ("actions", "deadband"): 0.6,
     ("motors", "layout"): "l298n",
     ("motors", "i2c_bus"): 256,
     ("motors", "address"): 0x80,
