@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from eval_report import read_evaluation
 
-from jetbot_rt.config.safe_file import read_json
 from jetbot_rt.config.sections import load_config
 from jetbot_rt.train.env import JetbotEnv
 from jetbot_rt.train.evaluate import load_policy
@@ -54,11 +54,8 @@ def main(task: str, doc: str, sort: Sort) -> None:
                         help="the evaluation's count (default: its own)")
     parser.add_argument("--config", default=None)
     args = parser.parse_args()
-    report: Any = read_json(args.eval, "evaluation", 1 << 20)
-    report = report.get("heldout", report)  # a device script's {"heldout": ..., "blank": ...}
-    first = report["seed"]
-    count = args.episodes or report["episodes"]
-    misses = sorted(set(range(first, first + count)) - set(report["successes"]))
+    report, seeds, successes = read_evaluation(args.eval, args.episodes)
+    misses = sorted(set(seeds) - successes)
     config = load_config(args.config)
     policy = load_policy(args.policy, config, ablate=report.get("ablate"))
     env = JetbotEnv(task, config, model_max_speed=policy.max_speed,

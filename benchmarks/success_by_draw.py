@@ -17,8 +17,8 @@ import argparse
 from typing import Any
 
 import numpy as np
+from eval_report import read_evaluation
 
-from jetbot_rt.config.safe_file import read_json
 from jetbot_rt.config.sections import load_config
 from jetbot_rt.train.env import JetbotEnv
 
@@ -81,20 +81,19 @@ def main() -> None:
     parser.add_argument("--config", default=None)
     parser.add_argument("--top", type=int, default=8, help="factors to print")
     args = parser.parse_args()
-    report: Any = read_json(args.eval, "evaluation", 1 << 20)
-    report = report.get("heldout", report)  # a device script's {"heldout": ..., "blank": ...}
-    first, count = report["seed"], args.episodes or report["episodes"]
-    seeds = range(first, first + count)
-    passed = [seed in set(report["successes"]) for seed in seeds]
+    _, seeds, successes = read_evaluation(args.eval, args.episodes)
+    first, count = seeds.start, len(seeds)
+    passed = [seed in successes for seed in seeds]
     env = JetbotEnv(args.task, load_config(args.config))
     draws: dict[str, list[Any]] = {}
-    draws_raw: dict[str, list[Any]] = {}
+    lists: set[str] = set()  # factors drawn as lists, named by their smallest element
     try:
         for seed in seeds:
             env.reset(seed=seed)
             for name, value in env.unwrapped.sim_params.items():
                 draws.setdefault(name, []).append(scalar(value))
-                draws_raw.setdefault(name, []).append(value)
+                if isinstance(value, list):
+                    lists.add(name)
     finally:
         env.close()
     ok = np.asarray(passed, dtype=float)
@@ -105,7 +104,7 @@ def main() -> None:
             continue
         if "none" in values and any(isinstance(v, float) for v in values):
             values = ["none" if v == "none" else "drawn" for v in values]  # a piece or none
-        elif any(isinstance(v, list) for v in draws_raw[name]):
+        elif name in lists:
             name = f"{name} (smallest)"
         labels, which = bins(values)
         observed = gap(which, ok, len(labels))

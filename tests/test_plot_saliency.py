@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from types import ModuleType
 
@@ -10,19 +9,15 @@ import numpy as np
 import onnx
 import policy_models
 from onnx import TensorProto, helper, numpy_helper
+from script_module import load_script
 
 from jetbot_rt.runtime.policy import OnnxPolicy
 
-ROOT = Path(__file__).resolve().parent.parent
 SIZE = 56
 
 
 def _saliency() -> ModuleType:
-    spec = importlib.util.spec_from_file_location(
-        "plot_saliency", ROOT / "benchmarks" / "plot_saliency.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/plot_saliency.py")
 
 
 def _region_reader(path: Path, rows: tuple[int, int], cols: tuple[int, int]) -> Path:

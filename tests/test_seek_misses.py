@@ -2,22 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-from types import ModuleType
-
 import pytest
+from script_module import load_script
 
-ROOT = Path(__file__).resolve().parent.parent
 
-
-def _module(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # it imports replay_misses
-    spec = importlib.util.spec_from_file_location(
-        "seek_misses", ROOT / "benchmarks" / "seek_misses.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+@pytest.fixture
+def misses(monkeypatch):
+    return load_script("benchmarks/seek_misses.py", monkeypatch)
 
 
 class Seek:
@@ -28,15 +19,13 @@ def _info(distance: float, failed: bool = False) -> dict:
     return {"is_success": False, "failed": failed, "distance": distance}
 
 
-def test_a_robot_that_never_left_its_start_stayed_though_its_goal_was_near(monkeypatch):
-    misses = _module(monkeypatch)
+def test_a_robot_that_never_left_its_start_stayed_though_its_goal_was_near(misses):
     # a goal may be drawn 0.35 m from the start: never moving ends "near" it
     assert misses.kind(_info(0.36), Seek, distractor=0.5, farthest=0.05) == "stayed at the start"
     assert misses.kind(_info(0.36), Seek, distractor=0.5, farthest=0.6) == "near the goal"
 
 
-def test_each_kind_of_miss(monkeypatch):
-    misses = _module(monkeypatch)
+def test_each_kind_of_miss(misses):
     assert misses.kind(_info(0.1, failed=True), Seek, 0.5, 0.8) == "pushed"
     assert misses.kind(_info(0.1), Seek, 0.5, 0.8) == "at the goal, moving"
     assert misses.kind(_info(0.7), Seek, 0.1, 0.8) == "at a distractor"

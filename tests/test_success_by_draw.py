@@ -2,25 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-from types import ModuleType
-
 import numpy as np
-
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _module() -> ModuleType:
-    spec = importlib.util.spec_from_file_location(
-        "success_by_draw", ROOT / "benchmarks" / "success_by_draw.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+import pytest
+from script_module import load_script
 
 
-def test_a_factor_that_decides_success_has_a_full_gap_and_no_chance():
-    sbd = _module()
+@pytest.fixture
+def sbd(monkeypatch):
+    return load_script("benchmarks/success_by_draw.py", monkeypatch)
+
+
+def test_a_factor_that_decides_success_has_a_full_gap_and_no_chance(sbd):
     values = [float(v) for v in np.linspace(0.0, 0.3, 100)]
     passed = np.array([v < 0.15 for v in values], dtype=float)
     labels, which = sbd.bins(values)
@@ -30,8 +22,7 @@ def test_a_factor_that_decides_success_has_a_full_gap_and_no_chance():
     assert sbd.chance(which, passed, len(labels), observed, np.random.default_rng(0)) < 0.001
 
 
-def test_a_factor_unrelated_to_success_is_often_matched_by_chance():
-    sbd = _module()
+def test_a_factor_unrelated_to_success_is_often_matched_by_chance(sbd):
     rng = np.random.default_rng(3)
     values = [float(v) for v in rng.uniform(0, 1, 100)]
     passed = (rng.uniform(0, 1, 100) < 0.5).astype(float)
@@ -40,8 +31,7 @@ def test_a_factor_unrelated_to_success_is_often_matched_by_chance():
     assert sbd.chance(which, passed, len(labels), observed, np.random.default_rng(0)) > 0.05
 
 
-def test_names_counts_and_lists_are_binned_by_value_and_by_their_smallest_element():
-    sbd = _module()
+def test_names_counts_and_lists_are_binned_by_value_and_by_their_smallest_element(sbd):
     assert sbd.scalar([0.9, 1.1]) == 0.9 and sbd.scalar(True) == "True"
     assert sbd.scalar("wood") == "wood" and sbd.scalar(None) == "none"
     assert sbd.scalar({"a": 1}) is None
