@@ -112,6 +112,7 @@ OUT_OF_RANGE = {
     ("randomize", "floor_plain"): 1.5,
     ("randomize", "plain_floor_grey"): [0.2, 1.5],
     ("randomize", "plain_floor_tint"): [0.7, 6.0],
+    ("randomize", "deadband_lift"): [-0.5, 0.05],
     ("randomize", "wall_color"): [-1.0, 1.3],
     ("randomize", "block_color"): [1.1, 0.8],
     ("randomize", "tint"): [0.9, 9.0],

@@ -143,3 +143,22 @@ def test_the_reported_draw_tells_appearance_families_apart():
     draws = [params(sample(config.sim, config.randomize, rng)) for _ in range(2)]
     assert set(LOOK_KEYS) <= set(draws[0])
     assert draws[0]["look_seed"] != draws[1]["look_seed"]
+
+
+def test_a_calibrated_lift_follows_each_episodes_drawn_deadband():
+    plain = JetbotEnv("seek", from_dict({}), randomize=True)
+    calibrated = JetbotEnv("seek", from_dict({"randomize": {"deadband_lift": [-0.05, 0.05]}}),
+                           randomize=True)
+    try:
+        for seed in (3, 4, 5, 6):
+            _, without = plain.reset(seed=seed)
+            _, drawn = calibrated.reset(seed=seed)
+            lift = drawn["sim_params"].pop("deadband_lift")
+            assert drawn["sim_params"] == without["sim_params"]  # the same world, lifted
+            deadband = drawn["sim_params"]["deadband"]
+            assert max(deadband - 0.05, 0.0) <= lift <= deadband + 0.05
+            assert calibrated.pipeline.deadband == lift and plain.pipeline.deadband == 0.0
+            assert "deadband_lift" not in without["sim_params"]
+    finally:
+        plain.close()
+        calibrated.close()

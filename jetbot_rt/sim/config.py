@@ -312,6 +312,10 @@ class RandomizeOwn:
     the goal is the red block)."""
     tint: List[float] = field(default_factory=lambda: [0.85, 1.15], metadata=low_high(0, 5))
     """Factor on each channel of each colour apart: a shift of hue."""
+    deadband_lift: Optional[List[float]] = field(default=None, metadata=low_high(-0.3, 0.3))
+    """A calibrated robot: each episode's ``[actions] deadband`` lift is its drawn dead-band
+    plus a draw from this range (the calibration's error), at least 0; unset: the lift is
+    ``[actions] deadband``. Drawn after every other draw, so a seed's world is as without it."""
 
 
 TRAINING_FLOORS = ("checker", "plain", "wood", "tiles", "concrete")

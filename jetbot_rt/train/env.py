@@ -171,6 +171,11 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.scene = self._scene(options or {})
         self.world.reset(scene=self.scene, sim=self._episode_sim())
         self.sim_params = sim_params(self.world.sim)
+        error = self.config.randomize.deadband_lift
+        if self.randomize and error is not None:
+            lift = self.world.sim.deadband + float(self.np_random.uniform(*error))
+            self.pipeline = dataclasses.replace(self.pipeline, deadband=min(max(lift, 0.0), 0.5))
+            self.sim_params["deadband_lift"] = self.pipeline.deadband
         self._steps = 0
         self._frame = self.world.frame()
         return self._frame, {**self._info((0.0, 0.0)), "sim_params": self.sim_params}
