@@ -319,3 +319,25 @@ def test_a_stop_with_a_body_is_answered_and_a_large_body_refused(local) -> None:
     conn.request("POST", "/stop", body=b"please")
     assert conn.getresponse().status == 200 and local.latch.tripped
     conn.close()
+
+
+def test_a_run_that_ends_between_a_state_and_its_check_still_tells_the_page(
+        local, monkeypatch) -> None:
+    view = local.server.view
+    state = view.state
+
+    def then_ends(*args, **kwargs):
+        out = state(*args, **kwargs)  # read before the end: the page would not see it
+        view.ended = {"reason": "a fault", "fault": True, "exit_code": 3}
+        return out
+
+    monkeypatch.setattr(view, "state", then_ends)
+    conn = socket.create_connection(("127.0.0.1", local.port), timeout=10)
+    conn.sendall(b"GET /events HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
+    data = b""
+    while chunk := conn.recv(65536):
+        data += chunk
+    conn.close()
+    assert b"event: end" in data
+    last = json.loads(data.split(b"data: ")[-1].split(b"\n\n")[0])
+    assert last["ended"] == {"reason": "a fault", "fault": True, "exit_code": 3}

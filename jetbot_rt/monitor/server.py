@@ -485,6 +485,8 @@ class MonitorHandler(BaseHTTPRequestHandler):
                 self.wfile.write(b"data: " + data + b"\n\n")
                 last = data
             if server.view.ended is not None:
-                return
+                # the end is always sent below, read after the check: the run can end
+                # between the state written above and this check
+                break
         data = self._json(server.view.state(server.counts))
         self.wfile.write(b"event: end\ndata: " + data + b"\n\n")
