@@ -225,7 +225,8 @@ def test_bad_device_or_restarts_is_one_line_and_exit_2_before_training(tmp_path,
 
     cases = [(["--device", "gpu"], "--device must be auto, cpu, cuda or cuda:N"),
              (["--ray-max-restarts", "-1"], "--ray-max-restarts must be >= 0"),
-             (["--step-penalty", "-0.1"], "--step-penalty must be >= 0")]
+             (["--step-penalty", "-0.1"], "--step-penalty must be >= 0"),
+             (["--target-kl", "0"], "--target-kl must be > 0")]
     if not torch.cuda.is_available():  # CUDA asked for on a machine without it
         cases.append((["--device", "cuda"], "--device cuda: CUDA is not available"))
     for flags, needle in cases:

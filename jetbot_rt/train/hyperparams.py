@@ -359,6 +359,11 @@ class PPOArgs(CurriculumOptions):
     (docs/TRAINING.md, "Speed")."""
     clip_coef: float = 0.2
     """PPO's ratio clip."""
+    target_kl: float | None = None
+    """Stop an update's epochs once the last minibatch's approximate KL divergence from the
+    collecting policy passes this (CleanRL's and Stable-Baselines3's ``target_kl``; None:
+    every epoch runs). On seek the KL grew to 0.05-0.1 per update while the policy's spread
+    collapsed and its success fell from its peak (``benchmarks/results/ppo_lift_h200/``)."""
     ent_coef: float = 0.0
     """Entropy bonus coefficient."""
     vf_coef: float = 0.5
@@ -472,6 +477,8 @@ class PPOArgs(CurriculumOptions):
             raise OptionError("augment", f"must be >= 0, got {self.augment}")
         if self.step_penalty < 0:
             raise OptionError("step_penalty", f"must be >= 0, got {self.step_penalty}")
+        if self.target_kl is not None and not self.target_kl > 0:
+            raise OptionError("target_kl", f"must be > 0, got {self.target_kl}")
         if self.predict_state < 0:
             raise OptionError("predict_state", f"must be >= 0, got {self.predict_state}")
         if self.predict_state > 0 and self.critic != "state":

@@ -49,6 +49,9 @@ METRIC_FIELDS = (
 )
 STATE_LOSS = "state_loss"
 """The metrics column of ``--predict-state``'s error (a run without it writes none)."""
+EPOCHS = "epochs"
+"""The metrics column of the epochs each update ran (``--target-kl``; a run without it writes
+none)."""
 CURVE = (Panel("mean_return", "mean episode return", scale=("symlog", {"linthresh": 1e4})),
          Panel("success_rate", "training success rate", ylim=(-0.05, 1.05), color="tab:green"))
 
@@ -89,6 +92,8 @@ class UpdateStats:
     entropy: float
     approx_kl: float
     clipfrac: float
+    epochs: int
+    """The epochs run: ``update_epochs``, fewer where ``target_kl`` stopped the update."""
     state_loss: float | None = None
     """The state head's squared error in units of each value's variance over the rollout,
     averaged over the values (``--predict-state``; the mean's error is 1 for a value that
@@ -98,7 +103,8 @@ class UpdateStats:
 def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Rollout,
                advantages: torch.Tensor, returns: torch.Tensor, options: PPOArgs,
                rng: np.random.Generator) -> UpdateStats:
-    """``update_epochs`` passes over the rollout in ``num_minibatches`` shuffled minibatches:
+    """``update_epochs`` passes over the rollout in ``num_minibatches`` shuffled minibatches
+    (fewer with ``target_kl``: none after the one whose last minibatch passed it):
     the clipped surrogate, the value loss and the entropy bonus, gradients clipped. With the
     asymmetric critic the value is the critic's of ``rollout.states``, and the actor's and
     the critic's gradients are clipped each to their own norm (two networks: the critic's
@@ -138,7 +144,9 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
     clip = options.clip_coef
     clipfracs: list[float] = []
     state_loss: torch.Tensor | None = None
+    epochs = 0
     for _ in range(options.update_epochs):
+        epochs += 1
         # sizes within one of each other, so no minibatch has one sample while another has
         # more (one sample alone, where minibatches outnumber half the batch, is kept as is)
         for part in np.array_split(rng.permutation(batch_size),
@@ -173,8 +181,10 @@ def ppo_update(model: ActorCritic, optimizer: torch.optim.Optimizer, rollout: Ro
             for parameters in clipped:
                 torch.nn.utils.clip_grad_norm_(parameters, options.max_grad_norm)
             optimizer.step()
+        if options.target_kl is not None and approx_kl.item() > options.target_kl:
+            break
     return UpdateStats(policy_loss.item(), value_loss.item(), entropy.item(), approx_kl.item(),
-                       float(np.mean(clipfracs)),
+                       float(np.mean(clipfracs)), epochs,
                        None if state_loss is None else state_loss.item())
 
 
@@ -229,7 +239,8 @@ def _rms_state(rms: Any) -> dict[str, float]:
 
 
 def _metrics_row(progress: Progress, episodes: EpisodeStats, stats: UpdateStats,
-                 optimizer: torch.optim.Optimizer, source: RolloutSource) -> dict[str, Any]:
+                 optimizer: torch.optim.Optimizer, source: RolloutSource, options: PPOArgs
+                 ) -> dict[str, Any]:
     elapsed = progress.elapsed()
     return {
         "update": progress.update,
@@ -247,6 +258,7 @@ def _metrics_row(progress: Progress, episodes: EpisodeStats, stats: UpdateStats,
         "reward_scale": round(float(np.sqrt(source.normalizer.return_rms.var + 1e-8)), 3),
         "worker_restarts": source.restarts,
         **({} if stats.state_loss is None else {STATE_LOSS: round(stats.state_loss, 5)}),
+        **({} if options.target_kl is None else {EPOCHS: stats.epochs}),
     }
 
 
@@ -257,7 +269,8 @@ class _Run:
         options.validate()
         self.options = options
         self.device = resolve_device(options.device)
-        fields = (*METRIC_FIELDS, STATE_LOSS) if options.predict_state > 0 else METRIC_FIELDS
+        fields = (*METRIC_FIELDS, *((STATE_LOSS,) if options.predict_state > 0 else ()),
+                  *((EPOCHS,) if options.target_kl is not None else ()))
         self.run = RunDirectory(options.out, metric_fields(fields, options))
         critic = critic_config(options)
         saved = self.run.prepare(options.resume, lambda saved: saved.check_resumable(
@@ -318,7 +331,8 @@ class _Run:
                            self.rng)
         torch.set_num_threads(options.torch_threads)
         progress.update, progress.global_step = update, progress.global_step + rollout.steps
-        row = _metrics_row(progress, self.episodes, stats, self.optimizer, self.source)
+        row = _metrics_row(progress, self.episodes, stats, self.optimizer, self.source,
+                           self.options)
         if self.schedule is not None:
             self.schedule.after(row, (success for *_, success in rollout.episodes),
                                 self.source.envs)
