@@ -22,6 +22,10 @@ from jetbot_rt.config.sections import LAYOUTS, Config, PolicyConfig
 from jetbot_rt.errors import Fault, UsageError, first_line
 
 META_PREFIX = "jetbot_rt."
+DEADBAND_LIFT = "deadband_lift"
+CALIBRATED = "calibrated"
+"""``jetbot_rt.deadband_lift = "calibrated"``: a policy trained on a robot whose dead-band
+the runtime lifts (``[randomize] deadband_lift``), that expects ``[actions] deadband``."""
 PROVIDER_PREFERENCE = (
     "TensorrtExecutionProvider",
     "CUDAExecutionProvider",
@@ -180,6 +184,11 @@ class OnnxPolicy:
         """The model's ``max_speed`` metadata (checked by ``load``), or None."""
         stated = self.metadata.get(META_PREFIX + "max_speed")
         return None if stated is None else float(stated)
+
+    @property
+    def calibrated(self) -> bool:
+        """Trained on a robot whose dead-band ``[actions] deadband`` lifts."""
+        return self.metadata.get(META_PREFIX + DEADBAND_LIFT) == CALIBRATED
 
     @property
     def providers(self) -> list[str]:

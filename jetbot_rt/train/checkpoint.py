@@ -143,6 +143,9 @@ class Checkpoint:
     critic: CriticConfig | None = None
     """The asymmetric critic of a ``--critic state`` run (its weights are ``critic.*``);
     None: the value is the image head's."""
+    calibrated: bool = False
+    """Trained on a robot whose dead-band the runtime lifts (``[randomize] deadband_lift``):
+    its export says so (``jetbot_rt.deadband_lift``)."""
 
     def _refuse(self, problem: str) -> UsageError:
         return UsageError(f"checkpoint {self.path}: {problem}")
@@ -342,6 +345,9 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
     max_speed = _number(state, "max_speed", 0.0, 1.0) if "max_speed" in state else None
     if max_speed == 0.0:
         raise _Defect("max_speed must be a number in (0, 1], got 0.0")
+    calibrated = state.get("calibrated", False)
+    if not isinstance(calibrated, bool):
+        raise _Defect(f"calibrated must be true or false, got {value_text(calibrated)}")
     training = None
     if "optimizer" in state:
         rms = state.get("reward_rms")
@@ -355,4 +361,5 @@ def _parse(shown_path: str, state: dict[str, Any]) -> Checkpoint:
                                  wall_s=_number(state, "wall_s", 0.0),
                                  optimizer=state["optimizer"], reward_rms=rms)
     return Checkpoint(path=shown_path, task=task, algo=algo, model_config=model_config,
-                      weights=weights, max_speed=max_speed, training=training, critic=critic)
+                      weights=weights, max_speed=max_speed, training=training, critic=critic,
+                      calibrated=calibrated)

@@ -273,7 +273,7 @@ class _Run:
         self.run.append_metrics(row)
         if options.snapshots and progress.update % options.snapshots == 0:
             self.run.export_policy(self.model.eval(), options.task, self.max_speed,
-                                   name=f"policy_{progress.update}.onnx")
+                                   options.config, name=f"policy_{progress.update}.onnx")
         return row
 
     def save(self) -> None:
@@ -324,7 +324,7 @@ def _train_until_done(run: _Run, options: DAggerArgs, after_interrupt: contextli
         bar.close()
     after_interrupt.close()  # from here interrupt_noted notes a copy (and a second raises)
     with interrupt_noted() as noted:
-        run.run.export_policy(run.model.eval(), options.task, run.max_speed)
+        run.run.export_policy(run.model.eval(), options.task, run.max_speed, options.config)
         run.run.plot_curve("jetbot-train DAgger learning curve", curve(CURVE, run.schedule))
     wall = progress.wall_s()
     summary = run.run.summary(progress, round(progress.global_step / max(wall, 1e-9), 1))

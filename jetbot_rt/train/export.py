@@ -21,10 +21,10 @@ from torch import nn
 import jetbot_rt
 from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
-from jetbot_rt.config.sections import COLOR_ORDERS, LAYOUTS, PIXEL_RANGES
+from jetbot_rt.config.sections import COLOR_ORDERS, LAYOUTS, PIXEL_RANGES, Config
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.runtime.actions import DEFAULT_MAX_SPEED
-from jetbot_rt.runtime.policy import MAX_INPUT_SIDE, META_PREFIX
+from jetbot_rt.runtime.policy import CALIBRATED, DEADBAND_LIFT, MAX_INPUT_SIDE, META_PREFIX
 from jetbot_rt.tasks import load_task
 from jetbot_rt.train.checkpoint import load_checkpoint
 from jetbot_rt.train.hyperparams import OptionError
@@ -47,11 +47,18 @@ class ExportError(UsageError):
     (exit 2, one line)."""
 
 
+def calibrated(config: Config) -> bool:
+    """Whether a run of ``config`` trains on a robot whose dead-band the runtime lifts."""
+    return config.randomize.deadband_lift is not None
+
+
 def policy_metadata(task: str | None, max_speed: float, image_size: int | tuple[int, int], *,
                     layout: str = "NHWC", color_order: str = "RGB",
-                    pixel_range: str = "0-255") -> dict[str, str]:
+                    pixel_range: str = "0-255", calibrated: bool = False) -> dict[str, str]:
     """The ``jetbot_rt.*`` keys ``jetbot_rt.runtime.policy`` reads; ``image_size`` is a side or
-    ``(height, width)``; no ``task`` key when ``task`` is None."""
+    ``(height, width)``; no ``task`` key when ``task`` is None. ``calibrated``: trained on a
+    robot whose dead-band the runtime lifts (``[randomize] deadband_lift``), the key
+    ``deadband_lift = "calibrated"``."""
     height, width = _size(image_size)
     metadata = {
         META_PREFIX + "layout": layout,
@@ -61,6 +68,7 @@ def policy_metadata(task: str | None, max_speed: float, image_size: int | tuple[
         META_PREFIX + "action": ACTION_MEANING,
         META_PREFIX + "max_speed": repr(float(max_speed)),
         META_PREFIX + "task": task,
+        META_PREFIX + DEADBAND_LIFT: CALIBRATED if calibrated else None,
         META_PREFIX + "version": jetbot_rt.__version__,
     }
     return {key: value for key, value in metadata.items() if value is not None}
@@ -185,10 +193,11 @@ def export_model(
     task: str = "forward",
     max_speed: float = DEFAULT_MAX_SPEED,
     opset: int = DEFAULT_OPSET,
+    calibrated: bool = False,
 ) -> float:
     """Write ``out`` and return the parity error; raise ``ExportError`` if it exceeds 1e-4."""
     _check_weights(model)
-    metadata = policy_metadata(task, max_speed, model.config.image_size)
+    metadata = policy_metadata(task, max_speed, model.config.image_size, calibrated=calibrated)
     return _in_eval_mode(model, lambda: _write_policy(
         _ExportedPolicy(model), out, output_names=("mu", "log_std", "value"),
         metadata=metadata, opset=opset))
@@ -334,4 +343,5 @@ def parity_error(model: nn.Module, onnx_bytes: bytes, batch: int = 3, seed: int 
 def export_checkpoint(checkpoint: str | Path, out: str | Path, opset: int = DEFAULT_OPSET) -> float:
     loaded = load_checkpoint(checkpoint)
     max_speed = DEFAULT_MAX_SPEED if loaded.max_speed is None else loaded.max_speed
-    return export_model(loaded.model(), out, task=loaded.task, max_speed=max_speed, opset=opset)
+    return export_model(loaded.model(), out, task=loaded.task, max_speed=max_speed, opset=opset,
+                        calibrated=loaded.calibrated)

@@ -62,6 +62,8 @@ class Start:
     model: ActorCritic
     task: str
     max_speed: float
+    calibrated: bool = False
+    """Trained on a robot whose dead-band the runtime lifts: the fine-tuned policy is too."""
 
 
 def _config_of(state: dict[str, torch.Tensor], image_size: int) -> ModelConfig:
@@ -123,7 +125,7 @@ def start_from_onnx(path: str) -> Start:
                          f"file's outputs (max diff {error:.2g}): not a network jetbot-train "
                          "exports")
     task = policy.metadata.get(META_PREFIX + "task") or "forward"
-    return Start(model, task, float(policy.max_speed or 0.1))
+    return Start(model, task, float(policy.max_speed or 0.1), policy.calibrated)
 
 
 def file_task(task: str, path: str) -> str:
@@ -146,7 +148,8 @@ def load_start(path: str) -> Start:
 
     checkpoint = load_checkpoint(path)
     task = file_task(checkpoint.task, path)
-    return Start(checkpoint.model().eval(), task, max_speed_of(Config(), load_task(task)))
+    return Start(checkpoint.model().eval(), task, max_speed_of(Config(), load_task(task)),
+                 checkpoint.calibrated)
 
 
 # ---- the person's labels -----------------------------------------------------------------
@@ -341,7 +344,7 @@ def _finetune(args: FinetuneArgs, began: float) -> dict[str, Any]:
         out = Path(args.out)
         with _named(inside(directory), out):
             export_model(start.model, inside(directory, POLICY_NAME), task=task,
-                         max_speed=start.max_speed)
+                         max_speed=start.max_speed, calibrated=start.calibrated)
         summary = {
             "policy": str(out / POLICY_NAME), "init": args.init, "task": task,
             "recordings": list(args.recordings), "holdout": list(args.holdout),

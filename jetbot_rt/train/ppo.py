@@ -357,7 +357,8 @@ class _Run:
 
     def finish(self) -> dict[str, Any]:
         """The policy exported, the curve plotted; the summary."""
-        self.run.export_policy(self.model.cpu().eval(), self.options.task, self.max_speed)
+        self.run.export_policy(self.model.cpu().eval(), self.options.task, self.max_speed,
+                               self.options.config)
         self.run.plot_curve("jetbot-train PPO learning curve", curve(CURVE, self.schedule))
         return self.run.summary(self.progress, self.steps_per_s)
 

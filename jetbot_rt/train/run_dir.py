@@ -47,6 +47,7 @@ import torch
 
 from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
+from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
 from jetbot_rt.train.checkpoint import (
     CHECKPOINT_NAME,
@@ -56,7 +57,7 @@ from jetbot_rt.train.checkpoint import (
     save_checkpoint,
 )
 from jetbot_rt.train.device import to_cpu
-from jetbot_rt.train.export import export_model
+from jetbot_rt.train.export import calibrated, export_model
 from jetbot_rt.train.hyperparams import CriticConfig
 from jetbot_rt.train.model import CRITIC, ActorCritic
 from jetbot_rt.train.out_dir import inside, writable_directory
@@ -348,6 +349,7 @@ class RunDirectory:
             "update": progress.update,
             "wall_s": progress.wall_s(),
             "max_speed": max_speed,
+            "calibrated": calibrated(options.config),
             "args": {k: v for k, v in asdict(options).items() if k not in ("config", "model")},
         }
         if reward_rms is not None:
@@ -356,10 +358,13 @@ class RunDirectory:
             state["critic"] = model.critic_config.to_dict()
         save_checkpoint(self.inside(CHECKPOINT_NAME), state)
 
-    def export_policy(self, model: ActorCritic, task: str, max_speed: float,
+    def export_policy(self, model: ActorCritic, task: str, max_speed: float, config: Config,
                       name: str = POLICY_NAME) -> None:
+        """``config``: the run's; a policy trained with ``[randomize] deadband_lift`` says it
+        expects the lift."""
         with _named(self.inside(), self.path):
-            export_model(model, self.inside(name), task=task, max_speed=max_speed)
+            export_model(model, self.inside(name), task=task, max_speed=max_speed,
+                         calibrated=calibrated(config))
 
     def plot_curve(self, title: str, panels: tuple[Panel, ...]) -> None:
         """``learning_curve.png``: each panel's column over the environment steps, from the
