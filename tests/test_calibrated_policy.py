@@ -14,6 +14,7 @@ from jetbot_rt.config.sections import from_dict
 from jetbot_rt.runtime.policy import OnnxPolicy
 from jetbot_rt.train import ppo
 from jetbot_rt.train.checkpoint import load_checkpoint
+from jetbot_rt.train.evaluate import evaluate
 from jetbot_rt.train.export import export_checkpoint
 from jetbot_rt.train.finetune import load_start
 from jetbot_rt.train.hyperparams import PPOArgs
@@ -39,6 +40,10 @@ def test_the_lift_a_policy_trained_with_reaches_each_export(tmp_path, lift):
     export_checkpoint(tmp_path / "run" / "checkpoint.pt", tmp_path / "again.onnx")
     assert OnnxPolicy.load(tmp_path / "again.onnx", from_dict({}).policy).calibrated is lift
     assert load_start(str(tmp_path / "run" / "policy.onnx")).calibrated is lift
+    if lift:  # an evaluation says which robot it measured
+        lifted = from_dict({"randomize": {"deadband_lift": [-0.05, 0.05]}})
+        report = evaluate(tmp_path / "again.onnx", task="seek", episodes=1, config=lifted)
+        assert report["calibrated_policy"] is True and report["deadband_lift"] == [-0.05, 0.05]
 
 
 def test_a_checkpoint_whose_calibrated_is_not_a_flag_is_refused(tmp_path):

@@ -146,6 +146,7 @@ def test_eval_json_has_the_fields_and_never_imports_torch(smoke_run):
     assert report["episodes"] == 1
     assert 0.0 <= report["success_rate"] <= 1.0
     assert np.isfinite(report["mean_return"]) and report["mean_final_distance"] > 0
+    assert report["deadband_lift"] is None and report["calibrated_policy"] is False
 
 
 @pytest.mark.skipif(

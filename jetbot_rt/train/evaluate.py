@@ -27,7 +27,13 @@ import numpy as np
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
-from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path
+from jetbot_rt.runtime.policy import (
+    CALIBRATED,
+    DEADBAND_LIFT,
+    META_PREFIX,
+    OnnxPolicy,
+    resolve_policy_path,
+)
 from jetbot_rt.tasks import BUILTIN, load_task
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
 from jetbot_rt.train.hyperparams import OptionError
@@ -238,6 +244,10 @@ def evaluate(
             config, policy.max_speed if policy.max_speed is not None else spec.max_speed
         ).max_speed,
         "ablate": ablate,
+        # a calibrated robot's lift, and whether the policy was trained for one: a
+        # calibrated policy measured without the lift is measured on an uncalibrated robot
+        "deadband_lift": config.randomize.deadband_lift,
+        "calibrated_policy": policy.metadata.get(META_PREFIX + DEADBAND_LIFT) == CALIBRATED,
         "successes": [r["seed"] for r in results if r["success"]],
         "wall_s": round(wall, 2),
         "env_steps_per_s": round(sum(r["steps"] for r in results) / wall, 1),
