@@ -5,12 +5,15 @@ unlifted."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import policy_models
 import pytest
 import torch
 from runner import run_cli
 
 from jetbot_rt.config.sections import from_dict
+from jetbot_rt.errors import UsageError
 from jetbot_rt.runtime.policy import OnnxPolicy
 from jetbot_rt.train import ppo
 from jetbot_rt.train.checkpoint import load_checkpoint
@@ -25,33 +28,39 @@ NOTE = "was trained on a robot whose dead-band is lifted"
 LIFTED = {"jetbot_rt.deadband_lift": "calibrated"}
 
 
-def _train(out, lift: bool) -> None:
-    config = from_dict({"randomize": {"deadband_lift": [-0.05, 0.05]}} if lift else {})
-    ppo.train(PPOArgs(task="seek", num_envs=1, num_steps=16, total_timesteps=16, out=str(out),
-                      update_epochs=1, progress=False, workers=0, config=config))
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[bool, Path]:
+    """A tiny seek run on a calibrated robot (True) and on a plain one (False)."""
+    out = {}
+    for lift in (True, False):
+        out[lift] = tmp_path_factory.mktemp("lifted" if lift else "plain") / "run"
+        config = from_dict({"randomize": {"deadband_lift": [-0.05, 0.05]}} if lift else {})
+        ppo.train(PPOArgs(task="seek", num_envs=1, num_steps=16, total_timesteps=16,
+                          out=str(out[lift]), update_epochs=1, progress=False, workers=0,
+                          config=config))
+    return out
 
 
 @pytest.mark.parametrize("lift", [True, False])
-def test_the_lift_a_policy_trained_with_reaches_each_export(tmp_path, lift):
-    _train(tmp_path / "run", lift)
-    policy = OnnxPolicy.load(tmp_path / "run" / "policy.onnx", from_dict({}).policy)
+def test_the_lift_a_policy_trained_with_reaches_each_export(tmp_path, runs, lift):
+    run = runs[lift]
+    policy = OnnxPolicy.load(run / "policy.onnx", from_dict({}).policy)
     assert policy.calibrated is lift
-    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt").calibrated is lift
-    export_checkpoint(tmp_path / "run" / "checkpoint.pt", tmp_path / "again.onnx")
+    assert load_checkpoint(run / "checkpoint.pt").calibrated is lift
+    export_checkpoint(run / "checkpoint.pt", tmp_path / "again.onnx")
     assert OnnxPolicy.load(tmp_path / "again.onnx", from_dict({}).policy).calibrated is lift
-    assert load_start(str(tmp_path / "run" / "policy.onnx")).calibrated is lift
+    assert load_start(str(run / "policy.onnx")).calibrated is lift
     if lift:  # an evaluation says which robot it measured
         lifted = from_dict({"randomize": {"deadband_lift": [-0.05, 0.05]}})
         report = evaluate(tmp_path / "again.onnx", task="seek", episodes=1, config=lifted)
         assert report["calibrated_policy"] is True and report["deadband_lift"] == [-0.05, 0.05]
 
 
-def test_a_checkpoint_whose_calibrated_is_not_a_flag_is_refused(tmp_path):
-    _train(tmp_path / "run", True)
-    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
+def test_a_checkpoint_whose_calibrated_is_not_a_flag_is_refused(tmp_path, runs):
+    state = torch.load(runs[True] / "checkpoint.pt", weights_only=True)
     state["calibrated"] = "yes"
     torch.save(state, tmp_path / "bad.pt")
-    with pytest.raises(Exception, match="calibrated must be true or false"):
+    with pytest.raises(UsageError, match="calibrated must be true or false"):
         load_checkpoint(tmp_path / "bad.pt")
 
 
