@@ -17,6 +17,7 @@ from jetbot_rt.errors import UsageError
 from jetbot_rt.runtime.policy import OnnxPolicy
 from jetbot_rt.train import ppo
 from jetbot_rt.train.checkpoint import load_checkpoint
+from jetbot_rt.train.env import calibrated_robot
 from jetbot_rt.train.evaluate import evaluate
 from jetbot_rt.train.export import export_checkpoint
 from jetbot_rt.train.finetune import load_start
@@ -26,6 +27,15 @@ pytest.importorskip("pybullet")
 
 NOTE = "was trained on a robot whose dead-band is lifted"
 LIFTED = {"jetbot_rt.deadband_lift": "calibrated"}
+
+
+def test_only_a_run_that_randomizes_trains_on_a_calibrated_robot():
+    lift = {"deadband_lift": [-0.05, 0.05]}
+    assert calibrated_robot(from_dict({"randomize": lift}), "seek")
+    assert not calibrated_robot(from_dict({"randomize": lift}), "forward")  # forward: off
+    assert not calibrated_robot(from_dict({"randomize": {**lift, "enabled": False}}), "seek")
+    assert calibrated_robot(from_dict({"randomize": {**lift, "enabled": True}}), "forward")
+    assert not calibrated_robot(from_dict({}), "seek")
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +78,7 @@ def test_a_checkpoint_whose_calibrated_is_not_a_flag_is_refused(tmp_path, runs):
     (LIFTED, "[sim]\ndeadband = 0.1\n", True),  # a dead-band the runtime does not lift
     (LIFTED, "[sim]\ndeadband = 0.1\n[actions]\ndeadband = 0.1\n", False),
     (LIFTED, "", False),  # the simulated robot has no dead-band: nothing to lift
+    (LIFTED, "[randomize]\nenabled = true\n", True),  # a drawn one
     ({}, "[sim]\ndeadband = 0.1\n", False),
 ])
 def test_run_notes_a_calibrated_policy_on_an_unlifted_robot(tmp_path, metadata, config, noted):

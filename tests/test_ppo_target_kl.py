@@ -1,5 +1,5 @@
 """PPO's ``--target-kl``: an update stops its epochs once the approximate KL divergence from
-the collecting policy passes it (CleanRL's and Stable-Baselines3's early stop)."""
+the collecting policy passes it (CleanRL's early stop)."""
 
 from __future__ import annotations
 

@@ -159,6 +159,9 @@ def test_a_calibrated_lift_follows_each_episodes_drawn_deadband():
             assert max(deadband - 0.05, 0.0) <= lift <= deadband + 0.05
             assert calibrated.pipeline.deadband == lift and plain.pipeline.deadband == 0.0
             assert "deadband_lift" not in without["sim_params"]
+        calibrated.randomize = False  # as a vector env's set_attr does: no lift left behind
+        _, fixed = calibrated.reset(seed=3)
+        assert calibrated.pipeline.deadband == 0.0 and "deadband_lift" not in fixed["sim_params"]
     finally:
         plain.close()
         calibrated.close()

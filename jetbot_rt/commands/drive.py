@@ -191,6 +191,8 @@ class DriveRuntime(Runtime):
     ``Prepare`` (which opens the recording), ``StartInputs`` before ``Connect`` and
     ``HandDrive`` in place of ``Drive``."""
 
+    command = "jetbot-rt drive"
+
     def __init__(self, args: argparse.Namespace) -> None:
         check_arguments(args)
         self.policy_drives = args.policy is not None

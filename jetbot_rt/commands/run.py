@@ -123,6 +123,8 @@ class Runtime:
 
     record_meta: dict | None = None
     """More keys for the recording's meta.json (``jetbot-rt drive``: the hand input's)."""
+    command = "jetbot-rt run"
+    """How its notes name it."""
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args

@@ -106,11 +106,12 @@ class Prepare(Phase):
         rt = self.rt
         policy = self.load.policy
         self.actions = ActionPipeline.from_config(rt.config.actions, policy.max_speed)
-        if policy.calibrated and self.actions.deadband == 0 and not (
-                rt.args.backend == "sim" and rt.config.sim.deadband == 0):
+        no_deadband_sim = (rt.args.backend == "sim" and rt.config.sim.deadband == 0
+                        and not rt.config.randomize.enabled)
+        if policy.calibrated and self.actions.deadband == 0 and not no_deadband_sim:
             # not refused: a robot without a dead-band is one; but the usual case is a robot
             # not calibrated yet, whose motors ignore the policy's smaller commands
-            print(f"jetbot-rt run: note: policy {shown(policy.path)} was trained on a robot "
+            print(f"{rt.command}: note: policy {shown(policy.path)} was trained on a robot "
                   "whose dead-band is lifted ([randomize] deadband_lift) and [actions] "
                   "deadband is 0: set it to this robot's dead-band (jetbot-rt calibrate; "
                   "docs/CALIBRATION.md, step 7)", file=sys.stderr, flush=True)

@@ -315,7 +315,8 @@ class RandomizeOwn:
     deadband_lift: Optional[List[float]] = field(default=None, metadata=low_high(-0.3, 0.3))
     """A calibrated robot: each episode's ``[actions] deadband`` lift is its drawn dead-band
     plus a draw from this range (the calibration's error), at least 0; unset: the lift is
-    ``[actions] deadband``. Drawn after every other draw, so a seed's world is as without it."""
+    ``[actions] deadband``. Drawn after every other draw, so a seeded reset's world is as
+    without it."""
 
 
 TRAINING_FLOORS = ("checker", "plain", "wood", "tiles", "concrete")

@@ -38,6 +38,20 @@ def max_speed_of(config: Config, task: Task | None = None) -> float:
     return action_pipeline_of(config, task.max_speed if task else None).max_speed
 
 
+def randomizes(config: Config, task: Task, asked: bool | None = None) -> bool:
+    """Whether an env of ``task`` draws its [sim] per episode: ``asked``, else ``[randomize]
+    enabled``, else the task's choice."""
+    if asked is not None:
+        return asked
+    return task.randomize if config.randomize.enabled is None else config.randomize.enabled
+
+
+def calibrated_robot(config: Config, task: str | Task) -> bool:
+    """Whether an env of ``config`` lifts each episode by its drawn dead-band (``[randomize]
+    deadband_lift``, on an env that randomizes): a policy trained on it expects the lift."""
+    return config.randomize.deadband_lift is not None and randomizes(config, load_task(task))
+
+
 class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
     """Observation: the camera image, HxWx3 uint8 RGB (``image_size`` = (width, height),
     default ``POLICY_IMAGE_SIZE`` square; an evaluation passes its policy's input size).
@@ -89,9 +103,9 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.pipeline = action_pipeline_of(
             self.config, model_max_speed if model_max_speed is not None else self.task.max_speed
         )
-        if randomize is None:
-            randomize = self.config.randomize.enabled
-        self.randomize = self.task.randomize if randomize is None else randomize
+        self._unlifted = self.pipeline
+        """The pipeline of the config; a calibrated robot's episode lifts a copy of it."""
+        self.randomize = randomizes(self.config, self.task, randomize)
         top = self.config.randomize.deadband[1]
         if self.randomize and top >= self.pipeline.max_speed:
             raise UsageError(
@@ -171,6 +185,7 @@ class JetbotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.scene = self._scene(options or {})
         self.world.reset(scene=self.scene, sim=self._episode_sim())
         self.sim_params = sim_params(self.world.sim)
+        self.pipeline = self._unlifted
         error = self.config.randomize.deadband_lift
         if self.randomize and error is not None:
             lift = self.world.sim.deadband + float(self.np_random.uniform(*error))

@@ -35,7 +35,7 @@ from jetbot_rt.runtime.policy import (
     resolve_policy_path,
 )
 from jetbot_rt.tasks import BUILTIN, load_task
-from jetbot_rt.train.env import JetbotEnv, action_pipeline_of
+from jetbot_rt.train.env import JetbotEnv, action_pipeline_of, calibrated_robot
 from jetbot_rt.train.hyperparams import OptionError
 from jetbot_rt.train.out_dir import own_directory
 from jetbot_rt.train.vec_env import workers_ignore_the_working_directory
@@ -246,7 +246,8 @@ def evaluate(
         "ablate": ablate,
         # a calibrated robot's lift, and whether the policy was trained for one: a
         # calibrated policy measured without the lift is measured on an uncalibrated robot
-        "deadband_lift": config.randomize.deadband_lift,
+        "deadband_lift": (config.randomize.deadband_lift if calibrated_robot(config, spec)
+                          else None),
         "calibrated_policy": policy.metadata.get(META_PREFIX + DEADBAND_LIFT) == CALIBRATED,
         "successes": [r["seed"] for r in results if r["success"]],
         "wall_s": round(wall, 2),

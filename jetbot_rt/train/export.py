@@ -21,7 +21,7 @@ from torch import nn
 import jetbot_rt
 from jetbot_rt.config import safe_file
 from jetbot_rt.config.safe_file import shown
-from jetbot_rt.config.sections import COLOR_ORDERS, LAYOUTS, PIXEL_RANGES, Config
+from jetbot_rt.config.sections import COLOR_ORDERS, LAYOUTS, PIXEL_RANGES
 from jetbot_rt.errors import UsageError, first_line
 from jetbot_rt.runtime.actions import DEFAULT_MAX_SPEED
 from jetbot_rt.runtime.policy import CALIBRATED, DEADBAND_LIFT, MAX_INPUT_SIDE, META_PREFIX
@@ -45,11 +45,6 @@ that only works for the traced batch size is caught."""
 class ExportError(UsageError):
     """The network cannot be a policy, or its export does not compute what it computes
     (exit 2, one line)."""
-
-
-def calibrated(config: Config) -> bool:
-    """Whether a run of ``config`` trains on a robot whose dead-band the runtime lifts."""
-    return config.randomize.deadband_lift is not None
 
 
 def policy_metadata(task: str | None, max_speed: float, image_size: int | tuple[int, int], *,

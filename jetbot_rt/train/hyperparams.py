@@ -361,9 +361,10 @@ class PPOArgs(CurriculumOptions):
     """PPO's ratio clip."""
     target_kl: float | None = None
     """Stop an update's epochs once the last minibatch's approximate KL divergence from the
-    collecting policy passes this (CleanRL's and Stable-Baselines3's ``target_kl``; None:
-    every epoch runs). On seek the KL grew to 0.05-0.1 per update while the policy's spread
-    collapsed and its success fell from its peak (``benchmarks/results/ppo_lift_h200/``)."""
+    collecting policy passes this (CleanRL's ``target_kl``; Stable-Baselines3 checks each
+    minibatch against 1.5 times it; None: every epoch runs). On seek the KL grew to 0.05-0.11
+    per update while the policy's spread collapsed and its success fell from its peak
+    (``benchmarks/results/ppo_lift_h200/``)."""
     ent_coef: float = 0.0
     """Entropy bonus coefficient."""
     vf_coef: float = 0.5

@@ -57,7 +57,8 @@ from jetbot_rt.train.checkpoint import (
     save_checkpoint,
 )
 from jetbot_rt.train.device import to_cpu
-from jetbot_rt.train.export import calibrated, export_model
+from jetbot_rt.train.env import calibrated_robot
+from jetbot_rt.train.export import export_model
 from jetbot_rt.train.hyperparams import CriticConfig
 from jetbot_rt.train.model import CRITIC, ActorCritic
 from jetbot_rt.train.out_dir import inside, writable_directory
@@ -118,8 +119,13 @@ def parse_metrics(text: str, names: tuple[str, ...], display: Path
             lacks = [name for name in names if name not in header][:3]
             detail = "".join(f"; {what} {_clip(', '.join(those), 40)}" for what, those
                              in (("it has", extra), ("it lacks", lacks)) if those)
-            raise bad(1, f"the columns are {_clip(','.join(header))}, expected "
-                      f"{_clip(','.join(names))}{detail}")
+            # a column some options add (--target-kl's epochs, --curriculum's difficulty,
+            # --predict-state's state_loss): the run was started with other options
+            raise UsageError(f"{shown(display)} line 1: the columns are "
+                             f"{_clip(','.join(header))}, expected {_clip(','.join(names))}"
+                             f"{detail} (a run started with other options, such as "
+                             "--target-kl, --curriculum or --predict-state: resume with "
+                             "those; or not a metrics file this trainer wrote: move it away)")
         for cells in reader:
             if not cells:
                 continue
@@ -349,7 +355,7 @@ class RunDirectory:
             "update": progress.update,
             "wall_s": progress.wall_s(),
             "max_speed": max_speed,
-            "calibrated": calibrated(options.config),
+            "calibrated": calibrated_robot(options.config, options.task),
             "args": {k: v for k, v in asdict(options).items() if k not in ("config", "model")},
         }
         if reward_rms is not None:
@@ -360,11 +366,11 @@ class RunDirectory:
 
     def export_policy(self, model: ActorCritic, task: str, max_speed: float, config: Config,
                       name: str = POLICY_NAME) -> None:
-        """``config``: the run's; a policy trained with ``[randomize] deadband_lift`` says it
-        expects the lift."""
+        """``config``: the run's; a policy trained on a calibrated robot (``[randomize]
+        deadband_lift``) says it expects the lift."""
         with _named(self.inside(), self.path):
             export_model(model, self.inside(name), task=task, max_speed=max_speed,
-                         calibrated=calibrated(config))
+                         calibrated=calibrated_robot(config, task))
 
     def plot_curve(self, title: str, panels: tuple[Panel, ...]) -> None:
         """``learning_curve.png``: each panel's column over the environment steps, from the
