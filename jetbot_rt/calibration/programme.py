@@ -69,11 +69,14 @@ class Spec:
 
 
 class Programme:
-    """Looks like an ``OnnxPolicy`` to the run's phases (``spec``, ``max_speed``, ``metadata``,
-    ``path``, ``fit``, ``describe``, ``infer``) and plays ``steps`` once ``arm``ed; before that
-    (warm-up) it only checks that the marker is in view."""
+    """Looks like an ``OnnxPolicy`` to the run's phases (``spec``, ``max_speed``,
+    ``calibrated``, ``metadata``, ``path``, ``fit``, ``describe``, ``infer``) and plays
+    ``steps`` once ``arm``ed; before that (warm-up) it only checks that the marker is in
+    view."""
 
     max_speed = 1.0
+    calibrated = False
+    """It drives raw duties (``calibrate`` sets ``[actions] deadband`` to 0): no lift."""
 
     def __init__(self, geometry: Geometry, limits: Limits, frame_size: tuple[int, int],
                  rate_hz: float) -> None:
