@@ -37,6 +37,11 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers", "exclusive: under pytest-xdist, runs while no other test runs (it loads "
         "every core on purpose); the other workers wait")
+    # The suite's wall time is mostly waiting (real-time runs, subprocesses): a worker that
+    # finishes its share takes tests from the other's queue instead of idling while the slow
+    # ones left there run. Set here, not in addopts: the robot side's pytest has no xdist.
+    if getattr(config.option, "dist", None) == "load":
+        config.option.dist = "worksteal"
 
 
 @contextlib.contextmanager
