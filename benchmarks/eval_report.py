@@ -4,9 +4,19 @@
 
 from __future__ import annotations
 
+import argparse
 from typing import Any
 
 from jetbot_rt.config.safe_file import read_json
+
+
+def evaluation_arguments(parser: argparse.ArgumentParser, eval_help: str) -> None:
+    """The options every script that reads an evaluation takes: ``--eval`` (the file),
+    ``--episodes`` (its first N) and ``--config`` (the config it was run with)."""
+    parser.add_argument("--eval", required=True, help=eval_help)
+    parser.add_argument("--episodes", type=int, default=None,
+                        help="the evaluation's count (default: its own)")
+    parser.add_argument("--config", default=None)
 
 
 def read_evaluation(path: str, episodes: int | None = None

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from eval_report import read_evaluation
+from eval_report import evaluation_arguments, read_evaluation
 
 from jetbot_rt.config.sections import load_config
 from jetbot_rt.train.env import JetbotEnv
@@ -49,10 +49,7 @@ def replay(env: JetbotEnv, policy: Any, seed: int) -> tuple[dict, Episode]:
 def main(task: str, doc: str, sort: Sort) -> None:
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--policy", required=True)
-    parser.add_argument("--eval", required=True, help="an eval --json output of this policy")
-    parser.add_argument("--episodes", type=int, default=None,
-                        help="the evaluation's count (default: its own)")
-    parser.add_argument("--config", default=None)
+    evaluation_arguments(parser, "an eval --json output of this policy")
     args = parser.parse_args()
     report, seeds, successes = read_evaluation(args.eval, args.episodes)
     misses = sorted(set(seeds) - successes)

@@ -17,7 +17,7 @@ import argparse
 from typing import Any
 
 import numpy as np
-from eval_report import read_evaluation
+from eval_report import evaluation_arguments, read_evaluation
 
 from jetbot_rt.config.sections import load_config
 from jetbot_rt.train.env import JetbotEnv
@@ -75,10 +75,7 @@ def chance(which: np.ndarray, passed: np.ndarray, size: int, observed: float,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", required=True)
-    parser.add_argument("--eval", required=True, help="an eval --json output")
-    parser.add_argument("--episodes", type=int, default=None,
-                        help="the evaluation's count (default: its own)")
-    parser.add_argument("--config", default=None)
+    evaluation_arguments(parser, "an eval --json output")
     parser.add_argument("--top", type=int, default=8, help="factors to print")
     args = parser.parse_args()
     _, seeds, successes = read_evaluation(args.eval, args.episodes)

@@ -26,6 +26,13 @@ DEADBAND_LIFT = "deadband_lift"
 CALIBRATED = "calibrated"
 """``jetbot_rt.deadband_lift = "calibrated"``: a policy trained on a robot whose dead-band
 the runtime lifts (``[randomize] deadband_lift``), that expects ``[actions] deadband``."""
+
+
+def trained_calibrated(metadata: dict[str, str]) -> bool:
+    """Whether a model's metadata says it was trained on a robot whose dead-band is lifted."""
+    return metadata.get(META_PREFIX + DEADBAND_LIFT) == CALIBRATED
+
+
 PROVIDER_PREFERENCE = (
     "TensorrtExecutionProvider",
     "CUDAExecutionProvider",
@@ -188,7 +195,7 @@ class OnnxPolicy:
     @property
     def calibrated(self) -> bool:
         """Trained on a robot whose dead-band ``[actions] deadband`` lifts."""
-        return self.metadata.get(META_PREFIX + DEADBAND_LIFT) == CALIBRATED
+        return trained_calibrated(self.metadata)
 
     @property
     def providers(self) -> list[str]:

@@ -27,13 +27,7 @@ import numpy as np
 
 from jetbot_rt.config.sections import Config
 from jetbot_rt.errors import UsageError
-from jetbot_rt.runtime.policy import (
-    CALIBRATED,
-    DEADBAND_LIFT,
-    META_PREFIX,
-    OnnxPolicy,
-    resolve_policy_path,
-)
+from jetbot_rt.runtime.policy import OnnxPolicy, resolve_policy_path, trained_calibrated
 from jetbot_rt.tasks import BUILTIN, load_task
 from jetbot_rt.train.env import JetbotEnv, action_pipeline_of, calibrated_robot
 from jetbot_rt.train.hyperparams import OptionError
@@ -248,7 +242,7 @@ def evaluate(
         # calibrated policy measured without the lift is measured on an uncalibrated robot
         "deadband_lift": (config.randomize.deadband_lift if calibrated_robot(config, spec)
                           else None),
-        "calibrated_policy": policy.metadata.get(META_PREFIX + DEADBAND_LIFT) == CALIBRATED,
+        "calibrated_policy": trained_calibrated(policy.metadata),  # an ablation's too
         "successes": [r["seed"] for r in results if r["success"]],
         "wall_s": round(wall, 2),
         "env_steps_per_s": round(sum(r["steps"] for r in results) / wall, 1),
