@@ -255,11 +255,12 @@ def test_close_is_bounded_when_the_writer_hangs(tmp_path):
 
 
 @exclusive
-def test_eval_video_records_episodes_that_replay(tmp_path):
+@pytest.mark.parametrize(("task", "measure"), [("forward", "distance"), ("follow", "offset")])
+def test_eval_video_records_episodes_that_replay(tmp_path, task, measure):
     train = Path(JETBOT_RT).with_name("jetbot-train")
-    proc = subprocess.run([str(train), "eval", "--episodes", "1", "--num-envs", "1", "--json",
-                           "--video", str(tmp_path / "ev")], capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run([str(train), "eval", "--task", task, "--episodes", "1",
+                           "--num-envs", "1", "--json", "--video", str(tmp_path / "ev")],
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.splitlines()[-1])
     episode = tmp_path / "ev" / f"episode-{result['seed']}"
@@ -267,6 +268,8 @@ def test_eval_video_records_episodes_that_replay(tmp_path):
     assert recording.meta["source"] == "jetbot-train eval"
     assert len(recording.ticks) == result["episode_steps"] == recording.summary["frames_written"]
     assert recording.events[-1]["success"] == (result["success_rate"] == 1.0)
+    written = [json.loads(line) for line in (episode / "ticks.jsonl").read_text().splitlines()]
+    assert all(isinstance(r[measure], float) for r in written if "tick" in r)
     assert replay(str(episode))["mu_max_abs_diff"] <= 1e-6
 
 

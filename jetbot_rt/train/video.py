@@ -65,11 +65,22 @@ class EpisodeRecording:
             cmd=(float(duty[0]), float(duty[1])), infer_ms=infer_ms,
             tick_ms=infer_ms + step_ms, write_ms=0.0, advance_ms=step_ms, overruns=0,
             extra={"pose": [float(v) for v in info["pose"]], "sim_time": self.now,
-                   "distance": float(info["distance"])},
+                   **task_measures(info)},
         ))
 
     def close(self, result: dict[str, Any]) -> None:
         self.recorder.close({"reason": "episode end", **result}, timeout=None)
+
+
+ENV_KEYS = ("pose", "duty", "sim_time")
+
+
+def task_measures(info: dict[str, Any]) -> dict[str, float]:
+    """The task's scalar outcome values of a step's ``info`` (seek's ``distance``, follow's
+    ``offset`` and ``progress``, ...): a task names its own, and many have no distance."""
+    return {key: float(value) for key, value in info.items() if key not in ENV_KEYS
+            and isinstance(value, (int, float, np.integer, np.floating))
+            and not isinstance(value, (bool, np.bool_))}
 
 
 def timed(function: Any, *args: Any) -> tuple[Any, float]:
