@@ -159,7 +159,7 @@ def quoted(text: str) -> str:
     return repr(text[:QUOTED_CHARS]) + ("..." if len(text) > QUOTED_CHARS else "")
 
 
-def _check_max_speed(path: str, metadata: dict[str, str]) -> None:
+def check_max_speed(path: str, metadata: dict[str, str]) -> None:
     """``jetbot_rt.max_speed``, when the model states one, is a number in (0, 1]: what our
     exporter writes. Anything else is a broken export, refused rather than replaced by the
     default without a word."""
@@ -236,16 +236,16 @@ class OnnxPolicy:
             ) from None
         try:  # onnxruntime hands text over as UTF-8, which the file need not be
             metadata = dict(session.get_modelmeta().custom_metadata_map)
-            spec = cls._input_spec(session, shown(path), config, metadata)
-            action_output = cls._action_output(session, shown(path))
+            spec = cls.input_spec(session, shown(path), config, metadata)
+            action_output = cls.action_output_of(session, shown(path))
         except UnicodeDecodeError:
             raise UsageError(f"policy {shown(path)}: its metadata or input and output names "
                              "are not UTF-8 text") from None
-        _check_max_speed(shown(path), metadata)
+        check_max_speed(shown(path), metadata)
         return cls(session, spec, action_output, path, metadata)
 
     @staticmethod
-    def _input_spec(session: Any, path: str, config: PolicyConfig,
+    def input_spec(session: Any, path: str, config: PolicyConfig,
                     metadata: dict[str, str]) -> InputSpec:
         inputs = session.get_inputs()
         if len(inputs) != 1:
@@ -307,7 +307,7 @@ class OnnxPolicy:
                          _DTYPES[model_input.type], color, pixel_range, config.clip)
 
     @staticmethod
-    def _action_output(session: Any, path: str) -> str:
+    def action_output_of(session: Any, path: str) -> str:
         outputs = session.get_outputs()
         chosen = next((o for o in outputs if o.name == "mu"), outputs[0])
         if chosen.type not in ("tensor(float)", "tensor(float16)", "tensor(double)"):

@@ -106,6 +106,15 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--out", required=True, help="ONNX file to write")
     export.add_argument("--opset", type=positive_int, default=16, help="ONNX opset")
 
+    ensemble = sub.add_parser(
+        "ensemble", help="one ONNX policy that drives the mean of several policies' commands",
+        formatter_class=formatter,
+        description="Write one ONNX policy whose mu is the mean of the members' (seeds of one "
+        "recipe: the same task, input and metadata contract); checked against the members "
+        "before --out is replaced. Its inference costs the members' together.")
+    ensemble.add_argument("policies", nargs="+", metavar="POLICY", help="ONNX files, two or more")
+    ensemble.add_argument("--out", required=True, help="ONNX file to write")
+
     evaluate = sub.add_parser(
         "eval", help="evaluate an ONNX policy deterministically (mu)", formatter_class=formatter,
         description="Evaluate an ONNX policy on a task's seeded episodes with the runtime's "
@@ -253,6 +262,15 @@ def _export(args: argparse.Namespace, argv: list[str]) -> int:
     return EXIT_OK
 
 
+def _ensemble(args: argparse.Namespace, argv: list[str]) -> int:
+    from jetbot_rt.train.ensemble import ensemble_policies
+
+    written = ensemble_policies(args.policies, args.out)
+    print(f"wrote {written['out']}: the mean of {len(written['members'])} policies; "
+          f"max difference from the members' mean {written['parity_error']:.2e}")
+    return EXIT_OK
+
+
 def _eval(args: argparse.Namespace, argv: list[str]) -> int:
     from jetbot_rt.config.sections import load_config
     from jetbot_rt.train.evaluate import evaluate
@@ -314,8 +332,8 @@ def _finetune(args: argparse.Namespace, argv: list[str]) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"train": _train, "export": _export, "eval": _eval, "sweep": _sweep,
-            "finetune": _finetune}
+COMMANDS = {"train": _train, "export": _export, "ensemble": _ensemble, "eval": _eval,
+            "sweep": _sweep, "finetune": _finetune}
 
 
 def missing_extra() -> list[str]:

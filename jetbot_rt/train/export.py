@@ -153,6 +153,13 @@ def _write_policy(
             f" (absolute, relative above 1; must be < {PARITY_TOLERANCE})"
             + ("; an output is NaN or infinite" if math.isnan(error) else "")
         )
+    write_model(out, data)
+    return error
+
+
+def write_model(out: Path, data: bytes) -> None:
+    """Replace ``out`` with ``data`` whole (a link planted there is replaced, not followed);
+    a failure is a one-line ``UsageError``."""
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         with safe_file.replaced_file(out.parent, out.name) as fd, \
@@ -160,7 +167,6 @@ def _write_policy(
             handle.write(data)
     except OSError as exc:
         raise UsageError(f"cannot write {shown(out)}: {exc.strerror or exc}") from None
-    return error
 
 
 def _check_weights(model: nn.Module) -> None:
