@@ -7,6 +7,7 @@ The Jetson Nano's estimate is on paper: the model's multiply-adds (counted from 
 an effective rate assumed for one Cortex-A57 core (see ``A57_GFLOPS``).
 
     python benchmarks/bench_inference.py [--runs 1000] [--out benchmarks/results]
+        [--policy LABEL FILE.onnx ...]   (more rows: e.g. a candidate beside the bundled one)
 """
 
 from __future__ import annotations
@@ -113,6 +114,8 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=1000)
     parser.add_argument("--seed-runs", type=int, default=50)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    parser.add_argument("--policy", nargs=2, action="append", default=[],
+                        metavar=("LABEL", "FILE"), help="another policy to time, as a row")
     args = parser.parse_args()
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
@@ -125,6 +128,7 @@ def main() -> int:
             "bundled": timed_inference(bundled_policy_path(), args.runs),
             "seed_rl_games_224": timed_inference(seed_model, args.seed_runs,
                                                  PolicyConfig(clip=5.0)),
+            **{label: timed_inference(Path(path), args.runs) for label, path in args.policy},
             "a57_gflops_assumed": list(A57_GFLOPS),
             "loadavg_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
         }
@@ -134,7 +138,7 @@ def main() -> int:
         "| model | input | params | MMAC | load | median | p99 | here GFLOP/s | Nano A57 (est.) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
-    for key in ("bundled", "seed_rl_games_224"):
+    for key in ("bundled", "seed_rl_games_224", *(label for label, _ in args.policy)):
         r = results[key]
         lo, hi = r["nano_a57_estimate_ms"]
         rows.append(

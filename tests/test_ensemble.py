@@ -31,7 +31,9 @@ def test_the_ensemble_drives_the_members_mean_and_keeps_their_contract(tmp_path,
     assert np.allclose(policy.infer(frame), [0.6, 0.0], atol=1e-6)
     assert policy.calibrated and policy.max_speed == 0.6
     assert policy.metadata["jetbot_rt.task"] == "avoid"
-    assert policy.metadata[ENSEMBLE_KEY] == "mean of 3: m0.onnx, m1.onnx, m2.onnx"
+    folder = tmp_path.name
+    assert policy.metadata[ENSEMBLE_KEY] == (f"mean of 3: {folder}/m0.onnx, {folder}/m1.onnx, "
+                                             f"{folder}/m2.onnx")
 
 
 def _refused(capsys, args, *needles):

@@ -157,7 +157,7 @@ def ensemble_policies(paths: list[str | Path], out: str | Path) -> dict[str, Any
                 raise UsageError(f"policy {shown(path)}: its {key} ({other[key]!r}) is not "
                                  f"{shown(paths[0])}'s ({first[key]!r}); an ensemble's "
                                  "members share one contract")
-    model = merged_model([proto for _, proto in read], [p.name for p in paths])
+    model = merged_model([proto for _, proto in read], ["/".join(p.parts[-2:]) for p in paths])
     data = model.SerializeToString()
     error = parity_error([d for d, _ in read], data, out)
     if not error < PARITY_TOLERANCE:
