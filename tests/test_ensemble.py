@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 
 import numpy as np
 import policy_models
@@ -91,3 +92,54 @@ def test_a_link_planted_at_out_is_replaced_not_written_through(tmp_path):
     out.symlink_to(victim)
     assert main(["ensemble", *members, "--out", str(out)]) == 0
     assert victim.read_text() == "keep" and not out.is_symlink()
+
+
+@pytest.mark.parametrize(("make", "needle"), [
+    (lambda p: policy_models.slow(p, 10**15), "holds a subgraph"),  # would never finish
+    (policy_models.two_inputs, "one image input"),
+    (policy_models.int_output, "not float32"),
+])
+def test_members_that_are_not_plain_graphs_are_refused_before_running(tmp_path, capsys, make,
+                                                                      needle):
+    first = _members(tmp_path, (0.2, 0.4), metadata=None)
+    other = str(make(tmp_path / "odd.onnx"))
+    out = tmp_path / "e.onnx"
+    _refused(capsys, ["ensemble", *first, other, "--out", str(out)], "odd.onnx", needle)
+    assert not out.exists()
+
+
+def test_a_member_that_fails_inside_onnxruntime_is_one_line(tmp_path, capsys):
+    first = _members(tmp_path, (0.2, 0.4), metadata=None)
+    wrong = tmp_path / "wrong.onnx"  # declares [1, 2] actions, returns [1, 3]
+    policy_models.constant(wrong, (0.1, 0.2, 0.3), extra_outputs=False)  # type: ignore[arg-type]
+    _refused(capsys, ["ensemble", *first, str(wrong), "--out", str(tmp_path / "e.onnx")],
+             "cannot build an ensemble")
+    assert not (tmp_path / "e.onnx").exists()
+
+
+def test_an_existing_out_that_is_not_a_file_is_refused_and_left_alone(tmp_path, capsys):
+    members = _members(tmp_path, (0.2, 0.4), (0.6, 0.0))
+    fifo = tmp_path / "out.onnx"
+    os.mkfifo(fifo)
+    _refused(capsys, ["ensemble", *members, "--out", str(fifo)], "not a regular file")
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+
+
+def test_an_ensemble_is_no_start_for_a_fine_tune(tmp_path):
+    from jetbot_rt.errors import UsageError
+    from jetbot_rt.train.finetune import start_from_onnx
+
+    members = _members(tmp_path, (0.2, 0.4), (0.6, 0.0))
+    out = tmp_path / "ensemble.onnx"
+    assert main(["ensemble", *members, "--out", str(out)]) == 0
+    with pytest.raises(UsageError, match=r"an ensemble .*start from one of its members"):
+        start_from_onnx(str(out))
+
+
+def test_a_video_records_a_tasks_finite_numbers_under_names_of_its_own():
+    from jetbot_rt.train.video import task_measures
+
+    info = {"distance": np.float32(0.5), "steps_left": np.int64(3), "tick": 1.0, "t": 3,
+            "state": 2, "huge": 10**400, "nan": float("nan"), "flag": True,
+            "is_success": np.bool_(True), "name": "x", "pose": [0.0, 0.0, 0.0]}
+    assert task_measures(info) == {"distance": 0.5, "steps_left": 3.0}

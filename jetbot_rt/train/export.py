@@ -9,6 +9,7 @@ import io
 import math
 import numbers
 import os
+import stat
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -158,9 +159,14 @@ def _write_policy(
 
 
 def write_model(out: Path, data: bytes) -> None:
-    """Replace ``out`` with ``data`` whole (a link planted there is replaced, not followed);
-    a failure is a one-line ``UsageError``."""
+    """Replace ``out`` with ``data`` whole (a link planted there is replaced, not followed;
+    a device, FIFO or socket there is refused: a rename would replace it, ``/dev/null``
+    included); a failure is a one-line ``UsageError``."""
     try:
+        mode = os.lstat(out).st_mode if os.path.lexists(out) else None
+        if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+            raise UsageError(f"cannot write {shown(out)}: not a regular file (refused: "
+                             "writing would replace it)")
         out.parent.mkdir(parents=True, exist_ok=True)
         with safe_file.replaced_file(out.parent, out.name) as fd, \
                 os.fdopen(os.dup(fd), "wb") as handle:

@@ -97,6 +97,10 @@ def start_from_onnx(path: str) -> Start:
     from jetbot_rt.runtime.policy import MAX_MODEL_BYTES, META_PREFIX, OnnxPolicy
 
     policy = OnnxPolicy.load(path)  # every check the runtime makes
+    members = policy.metadata.get(META_PREFIX + "ensemble")
+    if members is not None:
+        raise UsageError(f"--init {shown(path)}: an ensemble ({members[:200]}): start from "
+                         "one of its members (jetbot-train ensemble)")
     data = safe_file.read_bytes(path, "policy", MAX_MODEL_BYTES)
     try:
         proto = onnx.load_from_string(data)

@@ -10,6 +10,7 @@ evaluation wait: nothing else does).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from jetbot_rt.config.sections import Config
+from jetbot_rt.recording.reader import TICK_KEYS
 from jetbot_rt.recording.recorder import Recorder, sha256_of
 from jetbot_rt.runtime.loop import TickResult
 
@@ -73,14 +75,28 @@ class EpisodeRecording:
 
 
 ENV_KEYS = ("pose", "duty", "sim_time")
+TICK_FIELDS = frozenset(TICK_KEYS) | {"late_ms", "write_ms", "advance_ms", "sim_time"}
+"""A tick record's own fields: a task's outcome value of such a name is not recorded (it
+would replace the field, or make the record one the reader refuses)."""
 
 
 def task_measures(info: dict[str, Any]) -> dict[str, float]:
-    """The task's scalar outcome values of a step's ``info`` (seek's ``distance``, follow's
-    ``offset`` and ``progress``, ...): a task names its own, and many have no distance."""
-    return {key: float(value) for key, value in info.items() if key not in ENV_KEYS
-            and isinstance(value, (int, float, np.integer, np.floating))
-            and not isinstance(value, (bool, np.bool_))}
+    """The task's finite scalar outcome values of a step's ``info`` (seek's ``distance``,
+    follow's ``offset`` and ``progress``, ...): a task names its own, and many have no
+    distance."""
+    measures = {}
+    for key, value in info.items():
+        if key in ENV_KEYS or key in TICK_FIELDS or not isinstance(key, str) \
+                or isinstance(value, (bool, np.bool_)) \
+                or not isinstance(value, (int, float, np.integer, np.floating)):
+            continue
+        try:
+            number = float(value)
+        except OverflowError:  # an int past float's range
+            continue
+        if math.isfinite(number):
+            measures[key] = number
+    return measures
 
 
 def timed(function: Any, *args: Any) -> tuple[Any, float]:
