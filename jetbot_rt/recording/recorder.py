@@ -302,8 +302,9 @@ class Recorder:
         except subprocess.TimeoutExpired:
             counts = self.counts()
             counts["unfinished"] = self.frames_sent - int(self._header[DONE])
-            print(f"jetbot-rt: recording {self.path}: the disk did not take the last "
-                  f"{counts['unfinished']} frames within {timeout:g} s; not waiting",
+            what = (f"the disk did not take the last {counts['unfinished']} frames"
+                    if counts["unfinished"] else "the writer did not close its files")
+            print(f"jetbot-rt: recording {self.path}: {what} within {timeout:g} s; not waiting",
                   file=sys.stderr, flush=True)
             return counts
         return self.counts()
