@@ -291,7 +291,7 @@ def test_eval_video_records_episodes_that_replay(tmp_path, task, measure):
     assert len(recording.ticks) == result["episode_steps"] == recording.summary["frames_written"]
     assert recording.events[-1]["success"] == (result["success_rate"] == 1.0)
     written = [json.loads(line) for line in (episode / "ticks.jsonl").read_text().splitlines()]
-    assert all(isinstance(r[measure], float) for r in written if "tick" in r)
+    assert all(isinstance(r["task"][measure], float) for r in written if "tick" in r)
     assert replay(str(episode))["mu_max_abs_diff"] <= 1e-6
 
 

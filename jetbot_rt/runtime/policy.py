@@ -246,7 +246,7 @@ class OnnxPolicy:
 
     @staticmethod
     def input_spec(session: Any, path: str, config: PolicyConfig,
-                    metadata: dict[str, str]) -> InputSpec:
+                   metadata: dict[str, str]) -> InputSpec:
         inputs = session.get_inputs()
         if len(inputs) != 1:
             names = ", ".join(i.name for i in inputs)

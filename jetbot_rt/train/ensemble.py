@@ -178,9 +178,8 @@ def parity_error(members: list[bytes], ensemble: bytes, out: Path, seed: int = 0
     outs = []
     for session in sessions:
         feed = {session.get_inputs()[0].name: x}
-        chosen = next((o for o in session.get_outputs() if o.name == "mu"),
-                      session.get_outputs()[0])
-        outs.append(np.asarray(session.run([chosen.name], feed)[0], np.float64))
+        action = OnnxPolicy.action_output_of(session, shown(out))
+        outs.append(np.asarray(session.run([action], feed)[0], np.float64))
     mean = np.mean(np.stack(outs[:-1]), axis=0)
     return float(np.max(np.abs(outs[-1] - mean) / np.maximum(1.0, np.abs(mean))))
 

@@ -18,7 +18,6 @@ from typing import Any
 import numpy as np
 
 from jetbot_rt.config.sections import Config
-from jetbot_rt.recording.reader import TICK_KEYS
 from jetbot_rt.recording.recorder import Recorder, sha256_of
 from jetbot_rt.runtime.loop import TickResult
 
@@ -67,7 +66,7 @@ class EpisodeRecording:
             cmd=(float(duty[0]), float(duty[1])), infer_ms=infer_ms,
             tick_ms=infer_ms + step_ms, write_ms=0.0, advance_ms=step_ms, overruns=0,
             extra={"pose": [float(v) for v in info["pose"]], "sim_time": self.now,
-                   **task_measures(info)},
+                   "task": task_measures(info)},
         ))
 
     def close(self, result: dict[str, Any]) -> None:
@@ -75,18 +74,15 @@ class EpisodeRecording:
 
 
 ENV_KEYS = ("pose", "duty", "sim_time")
-TICK_FIELDS = frozenset(TICK_KEYS) | {"late_ms", "write_ms", "advance_ms", "sim_time"}
-"""A tick record's own fields: a task's outcome value of such a name is not recorded (it
-would replace the field, or make the record one the reader refuses)."""
 
 
 def task_measures(info: dict[str, Any]) -> dict[str, float]:
     """The task's finite scalar outcome values of a step's ``info`` (seek's ``distance``,
     follow's ``offset`` and ``progress``, ...): a task names its own, and many have no
-    distance."""
+    distance. A tick records them under ``task``, apart from its own fields."""
     measures = {}
     for key, value in info.items():
-        if key in ENV_KEYS or key in TICK_FIELDS or not isinstance(key, str) \
+        if key in ENV_KEYS or not isinstance(key, str) \
                 or isinstance(value, (bool, np.bool_)) \
                 or not isinstance(value, (int, float, np.integer, np.floating)):
             continue
