@@ -20,12 +20,12 @@ import policy_models
 import pytest
 from fault_helpers import (
     MU,
+    SwitchableCamera,
     assert_no_gst_left,
     live_camera,
     needs_gst,
     real_config,
     record_figures,
-    timeline_camera,
 )
 from runner import RuntimeProcess, processes_with, wait_for
 
@@ -83,12 +83,9 @@ def test_stalled_telemetry_reader_blocks_neither_the_loop_nor_the_exit(tmp_path:
     fifo, reader = stalled_fifo(tmp_path)
     make = policy_models.hang_when_dark if how == "policy-hangs" else policy_models.constant
     policy = make(tmp_path / "policy.onnx", MU)
-    camera = live_camera(mark)
-    if how == "policy-hangs":  # drive a while (the FIFO fills meanwhile), then a black frame
-        # 3.5 s of pattern from gst-launch's start: the warm-up of a loaded host (seen: 1.5 s
-        # at load 4) must still leave the driving below, until the pipe is full (about half
-        # a second), before the lens goes dark
-        camera = timeline_camera(mark, 105, None)
+    # policy-hangs drives until the FIFO is full, then the lens goes black
+    switchable = SwitchableCamera(tmp_path, mark) if how == "policy-hangs" else None
+    camera = switchable.pipeline if switchable else live_camera(mark)
     patient = "" if how == "policy-hangs" else PATIENT  # there the watchdog is the point
     rt = RuntimeProcess(tmp_path, "real", policy, config=real_config(camera) + patient,
                         telemetry=fifo)
@@ -106,6 +103,7 @@ def test_stalled_telemetry_reader_blocks_neither_the_loop_nor_the_exit(tmp_path:
             assert request_stop(control_socket(rt)).acknowledged
         else:
             assert not rt.board_off(), "still driving with the reader stalled"
+            switchable.show_black()
         t_off = wait_for(rt.board_off, EXIT_BOUND_S + (5 if how == "policy-hangs" else 0))
         assert t_off is not None
         out, err = rt.finish_raw(EXIT_BOUND_S + 5)

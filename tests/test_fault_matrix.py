@@ -25,12 +25,12 @@ import policy_models
 import pytest
 from fault_helpers import (
     MU,
+    SwitchableCamera,
     assert_no_gst_left,
     live_camera,
     needs_gst,
     real_config,
     record_figures,
-    timeline_camera,
 )
 from runner import Result, RuntimeProcess, assert_fixed_rate, processes_with, wait_for
 
@@ -47,23 +47,24 @@ MAX_FRAME_AGE = 0.15  # the default [loop] max_frame_age
 # ---- cameras and configs -----------------------------------------------------------------
 
 
-STARTUP_S = 1.5
+@dataclass(frozen=True)
+class Dark:
+    """The lens goes black after ``after_s`` of driving, for ``lasts_s`` (None: for good): the
+    sim's ``blackout`` in simulated time; on the real backend a ``SwitchableCamera`` shows a
+    black frame once the loop has ticked ``after_s`` worth of periods."""
+    after_s: float
+    lasts_s: float | None = None
 
+    def sim_config(self) -> str:
+        until = 1000.0 if self.lasts_s is None else self.after_s + self.lasts_s
+        return f"[sim]\nblackout = [{self.after_s}, {until}]\n"
 
-def dark_after(seconds: float, until: float = 1000.0, then_normal: bool = False):
-    """The lens goes black ``seconds`` into the run: the sim's ``blackout`` (simulated time),
-    or a camera timeline (wall time, 30 fps) for the real backend."""
-    def sim() -> str:
-        return f"[sim]\nblackout = [{seconds}, {until}]\n"
-
-    def real(mark: str) -> str:
-        # The timeline starts with gst-launch, before the policy's warm-up: give the start-up
-        # (about a second on a loaded machine, 1.5 s seen at load 4) its own frames, so the
-        # loop drives a while first.
-        dark = None if until >= 1000 else round((until - seconds) * 30)
-        return timeline_camera(mark, round((seconds + STARTUP_S) * 30), dark, then_normal)
-
-    return sim, real
+    def on_real(self, rt: RuntimeProcess, camera: SwitchableCamera) -> None:
+        rt.wait_ticks(round(self.after_s / PERIOD))
+        camera.show_black()
+        if self.lasts_s is not None:
+            time.sleep(self.lasts_s)
+            camera.show_pattern()
 
 
 # ---- the cases ---------------------------------------------------------------------------
@@ -84,6 +85,8 @@ class Case:
     policy: Callable[[Path], Path] = lambda path: policy_models.constant(path, MU)
     sim_config: Callable[[], str] = lambda: ""
     camera: Callable[[str], str] = live_camera
+    dark: Dark | None = None
+    """A black lens partway (``sim_config`` and ``camera`` then come from it)."""
     loop_config: str = "watchdog_timeout = 1.0\nmax_frame_age = 1.0\n"
     """Patient thresholds by default: a case is about its own fault, and a starved loop on a
     loaded host (CI: two busy cores) tripping the 0.1 s watchdog first is the safety design
@@ -250,24 +253,23 @@ def camera_of_size(width: int, height: int) -> Callable[[str], str]:
                          f"video/x-raw,format=GRAY8,width={width},height={height}")
 
 
-HANG = dark_after(1.0)  # 30 ticks of driving first (on the real backend, after STARTUP_S)
-NAN = dark_after(1.0)
-SLOW = dark_after(1.0, 1.3, then_normal=True)
+DARK = Dark(1.0)  # 30 ticks of driving first
+SLOW = Dark(1.0, 0.3)
 CASES = [
     # -- policy --
     Case("policy-hangs", ("sim", "real"), 3, "watchdog: no tick for", WATCHDOG + 0.5,
          sim_bound_s=SIM_WATCHDOG_MIN_S + 0.5, policy=policy_models.hang_when_dark,
-         sim_config=HANG[0], camera=HANG[1], loop_config="max_frame_age = 1.0\n",
+         dark=DARK, loop_config="max_frame_age = 1.0\n",
          check=check_watchdog_names_its_key),
     Case("policy-slow-then-recovers", ("sim", "real"), 0, "duration", duration=3.5,
-         policy=slow_when_dark_policy, sim_config=SLOW[0], camera=SLOW[1],
+         policy=slow_when_dark_policy, dark=SLOW,
          check=check_slow_then_recovers),
     Case("policy-nan", ("sim", "real"), 3, "non-finite action",
-         policy=policy_models.nan_when_dark, sim_config=NAN[0], camera=NAN[1]),
+         policy=policy_models.nan_when_dark, dark=DARK),
     Case("policy-inf", ("sim",), 3, "non-finite action",  # NaN's path: on both backends
-         policy=policy_models.inf_when_dark, sim_config=NAN[0], camera=NAN[1]),
+         policy=policy_models.inf_when_dark, dark=DARK),
     Case("policy-raises", ("sim", "real"), 3, "policy inference failed",
-         policy=policy_models.raise_when_dark, sim_config=NAN[0], camera=NAN[1]),
+         policy=policy_models.raise_when_dark, dark=DARK),
     Case("policy-file-replaced", ("sim",), 0, "duration", duration=2.5, inject=replace_policy,
          check=check_policy_kept),
     # -- camera --
@@ -326,12 +328,18 @@ def test_fault(tmp_path: Path, case: Case, backend: str) -> None:
     mark = f"fm{uuid.uuid4().hex[:12]}"
     policy = case.policy(tmp_path / "policy.onnx")
     loop = f"[loop]\n{case.loop_config}" if case.loop_config else ""
-    config = (case.sim_config() if backend == "sim"
-              else real_config(case.camera(mark), case.motors)) + loop
+    camera = SwitchableCamera(tmp_path, mark) if case.dark and backend == "real" else None
+    if backend == "sim":
+        config = case.dark.sim_config() if case.dark else case.sim_config()
+    else:
+        config = real_config(camera.pipeline if camera else case.camera(mark), case.motors)
+    config += loop
     rt = RuntimeProcess(tmp_path, backend, policy, config=config, duration=case.duration)
     inject_to_off = stop_command_s = None
     try:
         rt.start()
+        if camera is not None:
+            case.dark.on_real(rt, camera)
         if case.inject is not None:
             rt.wait_ticks(case.ticks_before)
             t_inject = time.monotonic()
