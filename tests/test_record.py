@@ -276,6 +276,35 @@ def test_a_writer_slow_to_close_is_not_called_a_full_disk(tmp_path, capsys):
     assert recorder.process.wait(60) == 0
 
 
+@exclusive  # it waits for the writer (nice 19) to find its directory gone
+def test_a_stopped_recording_says_so_once_though_its_writer_is_slow_to_end(tmp_path, capsys):
+    """The line that said the recording stopped is the only one: a writer that then does not
+    end within close's timeout (starved at nice 19 on a loaded host) adds no second line."""
+    import os
+    import shutil
+    import signal
+
+    recorder = Recorder(tmp_path / "rec", {"source": "test"}, (224, 224), 30.0, t0=0.0)
+    shutil.rmtree(tmp_path / "rec")
+    tick = 0
+
+    def stopped() -> bool:
+        nonlocal tick
+        tick += 1
+        recorder.observe(_tick(tick, np.zeros((224, 224, 3), np.uint8)))
+        return recorder.error is not None
+
+    assert wait_for(stopped, timeout=30)
+    os.kill(recorder.process.pid, signal.SIGSTOP)
+    try:
+        counts = recorder.close({"reason": "test"}, timeout=0.3)
+    finally:
+        os.kill(recorder.process.pid, signal.SIGCONT)
+    assert "error" in counts and "unfinished" in counts and recorder.process.poll() is None
+    assert "not waiting" not in capsys.readouterr().err
+    recorder.process.wait(60)
+
+
 @exclusive
 @pytest.mark.parametrize(("task", "measure"), [("forward", "distance"), ("follow", "offset")])
 def test_eval_video_records_episodes_that_replay(tmp_path, task, measure):

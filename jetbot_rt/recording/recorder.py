@@ -302,10 +302,11 @@ class Recorder:
         except subprocess.TimeoutExpired:
             counts = self.counts()
             counts["unfinished"] = self.frames_sent - int(self._header[DONE])
-            what = (f"the disk did not take the last {counts['unfinished']} frames"
-                    if counts["unfinished"] else "the writer did not close its files")
-            print(f"jetbot-rt: recording {self.path}: {what} within {timeout:g} s; not waiting",
-                  file=sys.stderr, flush=True)
+            if "error" not in counts:  # a stopped recording has said so in its own line
+                what = (f"the disk did not take the last {counts['unfinished']} frames"
+                        if counts["unfinished"] else "the writer did not close its files")
+                print(f"jetbot-rt: recording {self.path}: {what} within {timeout:g} s; "
+                      "not waiting", file=sys.stderr, flush=True)
             return counts
         return self.counts()
 
