@@ -113,9 +113,10 @@ class Writer:
         self.header[LOST] += 1
         text = self.error.encode()[: HEADER_BYTES - ERROR_TEXT - 1]
         self.mm[ERROR_TEXT:ERROR_TEXT + len(text)] = text
-        self.header[ERROR] = 1
+        # The line before the flag: a recorder that sees the flag at close relies on it said.
         print(f"jetbot-rt: recording {self.path} stopped ({self.error}); still driving",
               file=sys.stderr, flush=True)
+        self.header[ERROR] = 1
 
     def finish(self) -> None:
         with contextlib.suppress(Exception):
