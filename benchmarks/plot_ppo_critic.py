@@ -6,6 +6,8 @@ state``) and on the image (the default).
     python benchmarks/plot_ppo_critic.py   # writes benchmarks/results/ppo_critic_h200/curves.png
     python benchmarks/plot_ppo_critic.py --dir benchmarks/results/ppo_lift_h200 \\
         --run plain "plain robot" --run lift "calibrated robot (lift)" --envs 8
+    python benchmarks/plot_ppo_critic.py --dir benchmarks/results/ppo_15min_h100 \\
+        --run run "--target-kl 0.02 --augment 0.1" --host "H100 host, resumed at 481 s"
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ def main() -> None:
     parser.add_argument("--run", nargs=2, action="append", metavar=("FOLDER", "LABEL"),
                         help="a run's folder (holding metrics.csv) in --dir, and its label")
     parser.add_argument("--envs", type=int, default=16, help="env workers of each run")
+    parser.add_argument("--host", default="H200 host", help="the machine, for the title")
     args = parser.parse_args()
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, label in args.run or RUNS:
@@ -47,7 +50,7 @@ def main() -> None:
     ax.set_ylim(0, 1)
     ax.axhline(0.9, color="grey", linestyle=":", linewidth=0.8)
     ax.legend(loc="upper left")
-    ax.set_title("PPO on seek from pixels, H200 host")
+    ax.set_title(f"PPO on seek from pixels, {args.host}")
     fig.tight_layout()
     fig.savefig(args.dir / "curves.png", dpi=100)
 
