@@ -14,6 +14,9 @@ turns it off) on the state its frames show, as ``python -m jetbot_rt.train.exper
   latency keeps older commands running, a search or a back-off can move it away instead);
 - follow's pure-pursuit look-ahead: 0.15 m against 0.25 m, the median offset from the
   centre line over every step, and how far along the track the expert gets;
+- follow's and avoid's slowest forward command: 0.75, what DAgger trained their students with
+  (its ``--min-forward`` default replaced theirs until 2026-12-07), against their 0.8 before;
+  avoid's ``clear`` (where its turn away begins): 0.27 m against its 0.35 m (the baseline);
 - the tasks' own baselines (docs/TRAINING.md, "Tasks"): avoid's expert, a constant full
   forward command on avoid and on follow;
 - forward's geometry: the robot at full command from the nominal start, randomization off
@@ -105,6 +108,13 @@ ARMS: list[tuple[str, str, str, str | None, dict[str, float], float | None]] = [
     ("stop", "stop_lead 0.15 s (before)", "seek", None, {"stop_lead": 0.15}, None),
     ("lookahead", "0.15 m (now)", "follow", None, {}, 0.15),
     ("lookahead", "0.25 m (before)", "follow", None, {}, 0.25),
+    ("forward", "0.75 (now; every follow student's)", "follow", None, {}, 0.15),
+    ("forward", "0.8 (the default before 2026-12-07, never used by DAgger)", "follow", None,
+     {"min_forward": 0.8}, 0.15),
+    ("forward", "0.75 (now; every avoid student's)", "avoid", None, {}, None),
+    ("forward", "0.8 (the default before 2026-12-07, never used by DAgger)", "avoid", None,
+     {"min_forward": 0.8}, None),
+    ("clear", "0.27 m", "avoid", None, {"clear": 0.27}, None),
     ("baseline", "avoid's expert", "avoid", None, {}, None),
     ("baseline", "constant forward (1, 1)", "avoid", None, {"constant": (1.0, 1.0)}, None),
     ("baseline", "constant forward (1, 1)", "follow", None, {"constant": (1.0, 1.0)}, None),

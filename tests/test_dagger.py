@@ -156,6 +156,29 @@ def test_avoid_expert_is_symmetric_in_the_open_and_mirrors_there():
     assert np.allclose(expert.label(blocked), [-0.9, 0.9])
 
 
+def test_expert_options_left_alone_keep_a_task_experts_own_defaults():
+    import dataclasses
+
+    from jetbot_rt.tasks.avoid import Avoid, AvoidExpert
+    from jetbot_rt.train.dagger import expert_settings
+    from jetbot_rt.train.expert import task_expert
+    from jetbot_rt.train.hyperparams import DAggerArgs
+
+    class SlowAvoid(Avoid):  # a user's task whose expert has its own min_forward
+        def expert(self) -> AvoidExpert:
+            return AvoidExpert(min_forward=0.6)
+
+    defaults = DAggerArgs(task="avoid")
+    assert expert_settings(defaults) == {}
+    assert task_expert(SlowAvoid(), expert_settings(defaults)).min_forward == 0.6
+    assert task_expert("avoid", expert_settings(defaults)).min_forward == 0.75
+    changed = dataclasses.replace(defaults, min_forward=0.9, search_left=0.2)
+    assert expert_settings(changed) == {"min_forward": 0.9, "search_left": 0.2}
+    assert task_expert(SlowAvoid(), expert_settings(changed)).min_forward == 0.9
+    as_seek = dataclasses.replace(defaults, min_forward=0.75)  # given, though seek's default
+    assert task_expert(SlowAvoid(), expert_settings(as_seek)).min_forward == 0.75
+
+
 def test_dataset_keeps_every_added_frame_in_order_as_it_grows():
     from jetbot_rt.train.dagger import Dataset
 

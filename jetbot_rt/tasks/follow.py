@@ -232,8 +232,10 @@ class FollowExpert:
     2.0 cm from the centre line, at 0.15 m 0.8 cm (the median of 100 randomized episodes'
     medians; ``benchmarks/bench_expert_choices.py``), of the 12 cm a student may stray
     before it has left the track."""
-    min_forward: float = 0.8
-    """The forward command: above the randomized dead-band's share (0.3 duty of 0.6)."""
+    min_forward: float = 0.75
+    """The forward command: above the randomized dead-band's share (0.3 duty of 0.6). 0.75,
+    not the 0.8 it was: DAgger's ``--min-forward`` default replaced it until 2026-12-07, so
+    every follow student was trained at 0.75."""
     half_track: float = 0.055
     """m; half the distance between the wheels."""
     turn_gain: float = 1.0

@@ -45,6 +45,15 @@ EXPERT_SETTINGS = ("stop_distance", "min_forward", "search_bearing_deg", "search
 """The DAgger options that tune an expert that has fields of these names (the goal tasks')."""
 
 
+def expert_settings(options: DAggerArgs) -> dict[str, Any]:
+    """The expert options given (not None), to replace the fields of those names in the
+    task's expert: an option left alone keeps a task expert's own value. Before 2026-12-07
+    each one had the goal expert's default and was always passed, so avoid's and follow's
+    experts (min_forward 0.8 then, 0.75 since) labelled at the goal expert's 0.75."""
+    return {name: getattr(options, name) for name in EXPERT_SETTINGS
+            if getattr(options, name) is not None}
+
+
 class Dataset:
     """The aggregated frames (uint8, as rendered), the expert's labels and whether the
     expert's rule was symmetric at each (``Expert.symmetric``), growing.
@@ -235,8 +244,7 @@ class _Run:
         self.model = model.eval()
         self.rng = np.random.default_rng(options.seed + self.progress.update)
         self.max_speed = max_speed_of(options.config, load_task(options.task))
-        self.expert = task_expert(options.task, {name: getattr(options, name)
-                                                 for name in EXPERT_SETTINGS})
+        self.expert = task_expert(options.task, expert_settings(options))
         self.schedule = Schedule.of(options, self.run, resumed is not None, self.progress.update)
         self.envs: VectorEnv | None = None
 

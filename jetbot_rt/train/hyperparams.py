@@ -16,7 +16,6 @@ from jetbot_rt.config.sections import Config, from_dict, read_toml
 from jetbot_rt.errors import UsageError
 from jetbot_rt.tasks import BUILTIN, load_task
 from jetbot_rt.train.env import POLICY_IMAGE_SIZE
-from jetbot_rt.train.expert import Expert
 from jetbot_rt.train.wrappers import REWARD_TRANSFORMS, Shaping
 
 CRITICS = ("image", "state")
@@ -644,20 +643,23 @@ class DAggerArgs(CurriculumOptions):
     label's wheels swapped), for frames on which the expert's rule has no side
     (``Expert.symmetric``: avoid's in the open). Its student leaned left in the open, its
     only turn on the spot being left. 0: never."""
-    stop_distance: float = Expert.stop_distance
-    """m; the expert commands zero from this distance to the goal on (``Expert``)."""
-    min_forward: float = Expert.min_forward
-    """The expert's slowest forward command while driving (``Expert``); times max_speed it
-    must stay above the dead-band it trains with."""
-    search_bearing_deg: float = Expert.search_bearing_deg
-    """Degrees; the expert searches beyond this bearing error (``Expert``; 30 through the
+    stop_distance: float | None = None
+    """m; the expert commands zero from this distance to the goal on (``Expert``: 0.12).
+    This and the five below replace the field of their name in the task's expert where it
+    has one; None (the default) keeps the expert's own value."""
+    min_forward: float | None = None
+    """The expert's slowest forward command while driving (``Expert``: 0.75; avoid's and
+    follow's experts have one too); times max_speed it must stay above the dead-band it
+    trains with."""
+    search_bearing_deg: float | None = None
+    """Degrees; the expert searches beyond this bearing error (``Expert``: 40; 30 through the
     pinhole lens)."""
-    search_left: float = Expert.search_left
-    """The expert's left wheel command while the goal is out of view (``Expert``)."""
-    search_right: float = Expert.search_right
-    """The expert's right wheel command while the goal is out of view (``Expert``)."""
-    backoff_distance: float = Expert.backoff_distance
-    """m; the expert backs away closer than this (``Expert``; 0: never)."""
+    search_left: float | None = None
+    """The expert's left wheel command while the goal is out of view (``Expert``: -0.6)."""
+    search_right: float | None = None
+    """The expert's right wheel command while the goal is out of view (``Expert``: 0.2)."""
+    backoff_distance: float | None = None
+    """m; the expert backs away closer than this (``Expert``: 0.10; 0: never)."""
     snapshots: int = 0
     """Also export ``policy_<iteration>.onnx`` every this many iterations (0: never)."""
     device: str = "cpu"
