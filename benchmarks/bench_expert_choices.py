@@ -16,7 +16,7 @@ turns it off) on the state its frames show, as ``python -m jetbot_rt.train.exper
   centre line over every step, and how far along the track the expert gets;
 - follow's and avoid's slowest forward command: 0.75, what DAgger trained their students with
   (its ``--min-forward`` default replaced theirs until 2026-12-07), against their 0.8 before;
-  avoid's ``clear`` (where its turn away begins): 0.27 m against its 0.35 m (the baseline);
+  avoid's ``clear`` (where its turn away begins): 0.27 m (the baseline) against 0.35 m before;
 - the tasks' own baselines (docs/TRAINING.md, "Tasks"): avoid's expert, a constant full
   forward command on avoid and on follow;
 - forward's geometry: the robot at full command from the nominal start, randomization off
@@ -114,7 +114,7 @@ ARMS: list[tuple[str, str, str, str | None, dict[str, float], float | None]] = [
     ("forward", "0.75 (now; every avoid student's)", "avoid", None, {}, None),
     ("forward", "0.8 (the default before 2026-12-07, never used by DAgger)", "avoid", None,
      {"min_forward": 0.8}, None),
-    ("clear", "0.27 m", "avoid", None, {"clear": 0.27}, None),
+    ("clear", "0.35 m (before 2026-12-07)", "avoid", None, {"clear": 0.35}, None),
     ("baseline", "avoid's expert", "avoid", None, {}, None),
     ("baseline", "constant forward (1, 1)", "avoid", None, {"constant": (1.0, 1.0)}, None),
     ("baseline", "constant forward (1, 1)", "follow", None, {"constant": (1.0, 1.0)}, None),
