@@ -251,8 +251,9 @@ class AvoidExpert:
     """The forward command in the open."""
     min_forward: float = 0.75
     """The slowest forward command (near obstacles): above the randomized dead-band's share
-    (0.3 duty of 0.5). 0.75, not the 0.8 it was: DAgger's ``--min-forward`` default replaced
-    it until 2026-12-07, so every avoid student was trained at 0.75."""
+    (0.3 duty of the 0.6 at full command). 0.75, not the 0.8 it was: DAgger's
+    ``--min-forward`` default replaced it until 2026-12-07, so every avoid student was trained
+    at 0.75."""
     blocked: float = 0.15
     """m free ahead (rays within 20 degrees) below which it turns left on the spot."""
     clear: float = 0.27
