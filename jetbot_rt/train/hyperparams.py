@@ -644,22 +644,22 @@ class DAggerArgs(CurriculumOptions):
     (``Expert.symmetric``: avoid's in the open). Its student leaned left in the open, its
     only turn on the spot being left. 0: never."""
     stop_distance: float | None = None
-    """m; the expert commands zero from this distance to the goal on (``Expert``: 0.12).
+    """m; the expert commands zero from this distance to the goal on (seek's ``Expert``).
     This and the five below replace the field of their name in the task's expert where it
     has one; None (the default) keeps the expert's own value."""
     min_forward: float | None = None
-    """The expert's slowest forward command while driving (``Expert``: 0.75; avoid's and
+    """The expert's slowest forward command while driving (seek's ``Expert``; avoid's and
     follow's experts have one too); times max_speed it must stay above the dead-band it
     trains with."""
     search_bearing_deg: float | None = None
-    """Degrees; the expert searches beyond this bearing error (``Expert``: 40; 30 through the
+    """Degrees; the expert searches beyond this bearing error (seek's ``Expert``; 30 through the
     pinhole lens)."""
     search_left: float | None = None
-    """The expert's left wheel command while the goal is out of view (``Expert``: -0.6)."""
+    """The expert's left wheel command while the goal is out of view (seek's ``Expert``)."""
     search_right: float | None = None
-    """The expert's right wheel command while the goal is out of view (``Expert``: 0.2)."""
+    """The expert's right wheel command while the goal is out of view (seek's ``Expert``)."""
     backoff_distance: float | None = None
-    """m; the expert backs away closer than this (``Expert``: 0.10; 0: never)."""
+    """m; the expert backs away closer than this (seek's ``Expert``; 0: never)."""
     snapshots: int = 0
     """Also export ``policy_<iteration>.onnx`` every this many iterations (0: never)."""
     device: str = "cpu"
