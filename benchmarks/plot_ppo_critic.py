@@ -49,7 +49,7 @@ def main() -> None:
     ax.set_ylabel("training success (rollout episodes)")
     ax.set_ylim(0, 1)
     ax.axhline(0.9, color="grey", linestyle=":", linewidth=0.8)
-    ax.legend(loc="upper left")
+    ax.legend(loc="lower right")
     ax.set_title(f"PPO on seek from pixels, {args.host}")
     fig.tight_layout()
     fig.savefig(args.dir / "curves.png", dpi=100)

@@ -27,6 +27,9 @@ class Episode:
     """m; the farthest the robot got from ``start`` at any step."""
     mean_command: np.ndarray
     """The policy's mean output (left, right) over the episode."""
+    last_command: np.ndarray
+    """The policy's output (left, right) at the last step: where a robot stopped short, is
+    it commanding a stop, or a crawl that a dead-band swallows?"""
 
 
 Sort = Callable[[JetbotEnv, dict, Episode], tuple[str, str]]
@@ -43,27 +46,44 @@ def replay(env: JetbotEnv, policy: Any, seed: int) -> tuple[dict, Episode]:
         obs, _, terminated, truncated, info = env.step(command)
         farthest = max(farthest, float(np.linalg.norm(np.asarray(info["pose"][:2]) - start)))
         done = terminated or truncated
-    return info, Episode(start, farthest, np.mean(commands, axis=0))
+    return info, Episode(start, farthest, np.mean(commands, axis=0), commands[-1])
 
 
-def main(task: str, doc: str, sort: Sort) -> None:
+@dataclass
+class Replay:
+    """An evaluation to replay: its seeds and successes, the policy and the env it ran."""
+
+    seeds: range
+    successes: set[int]
+    policy: Any
+    env: JetbotEnv
+
+
+def open_replay(task: str, doc: str) -> Replay:
+    """The command line every replaying script takes (``--policy``, ``--eval``,
+    ``--episodes``, ``--config``), read: the evaluation's environment and ablation rebuilt.
+    The caller closes ``env``."""
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--policy", required=True)
     evaluation_arguments(parser, "an eval --json output of this policy")
     args = parser.parse_args()
     report, seeds, successes = read_evaluation(args.eval, args.episodes)
-    misses = sorted(set(seeds) - successes)
     config = load_config(args.config)
     policy = load_policy(args.policy, config, ablate=report.get("ablate"))
     env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
                     image_size=(policy.spec.width, policy.spec.height))
+    return Replay(seeds, successes, policy, env)
+
+
+def main(task: str, doc: str, sort: Sort) -> None:
+    run = open_replay(task, doc)
     counts: dict[str, int] = {}
     try:
-        for seed in misses:
-            info, episode = replay(env, policy, seed)
-            found, detail = sort(env, info, episode)
+        for seed in sorted(set(run.seeds) - run.successes):
+            info, episode = replay(run.env, run.policy, seed)
+            found, detail = sort(run.env, info, episode)
             counts[found] = counts.get(found, 0) + 1
             print(f"{seed}: {found} ({detail})", flush=True)
     finally:
-        env.close()
+        run.env.close()
     print(", ".join(f"{n} {k}" for k, n in sorted(counts.items())))

@@ -56,10 +56,15 @@ def sort(env, info: dict, episode: Episode) -> tuple[str, str]:
     distractor = min((float(np.linalg.norm(robot - np.asarray(xy))) for xy in others),
                      default=math.inf)
     left, right = episode.mean_command
+    last_left, last_right = episode.last_command
+    drawn = env.unwrapped.sim_params
+    lift = (f", lift {drawn['deadband_lift']:.2f}" if drawn.get("deadband_lift") is not None
+            else "")
     return (kind(info, env.unwrapped.task, distractor, episode.farthest),
             f"goal {info['distance']:.2f} m, nearest distractor {distractor:.2f} m, at most "
             f"{episode.farthest:.2f} m from the start, speed {info['speed']:.3f} m/s, mean "
-            f"command ({left:.2f}, {right:.2f})")
+            f"command ({left:.2f}, {right:.2f}), last ({last_left:.2f}, {last_right:.2f}), "
+            f"dead-band {drawn.get('deadband', 0.0):.2f}{lift}")
 
 
 if __name__ == "__main__":

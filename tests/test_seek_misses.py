@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
+import numpy as np
 import pytest
 from script_module import load_script
 
@@ -33,3 +36,27 @@ def test_each_kind_of_miss(misses):
     assert misses.kind(_info(0.9), Seek, 0.6, 0.8) == "elsewhere"
     # a robot that drove out and came back did leave its start
     assert misses.kind(_info(0.9), Seek, 0.6, farthest=0.5) == "elsewhere"
+
+
+
+def _env(deadband_lift: float | None) -> SimpleNamespace:
+    drawn = {"deadband": 0.28, "deadband_lift": deadband_lift}
+    return SimpleNamespace(unwrapped=SimpleNamespace(
+        task=Seek, sim_params=drawn, scene=SimpleNamespace(pieces=())))
+
+
+def test_a_miss_line_gives_the_last_command_and_the_drawn_dead_band(misses):
+    episode = misses.Episode(np.zeros(2), 0.8, np.array([0.7, 0.56]), np.array([0.33, 0.24]))
+    info = {**_info(0.16), "pose": [0.0, 0.0, 0.0], "speed": 0.0}
+    found, detail = misses.sort(_env(None), info, episode)
+    assert found == "near the goal"
+    assert detail.endswith("mean command (0.70, 0.56), last (0.33, 0.24), dead-band 0.28")
+    assert misses.sort(_env(0.3), info, episode)[1].endswith("dead-band 0.28, lift 0.30")
+
+
+def test_the_stops_summary_counts_the_stops_that_crowd_the_threshold(monkeypatch):
+    stops = load_script("benchmarks/seek_stops.py", monkeypatch)
+    line = stops.summary([0.10, 0.12, 0.141, 0.149], 0.15)
+    assert line.startswith("4 successes: final distance min 0.100")
+    assert line.endswith("max 0.149 m; 2 within 1 cm of 0.15 m")
+    assert stops.summary([], 0.15) == "no successes"
