@@ -13,7 +13,7 @@ import numpy as np
 from eval_report import evaluation_arguments, read_evaluation
 
 from jetbot_rt.config.sections import load_config
-from jetbot_rt.train.env import JetbotEnv
+from jetbot_rt.train.env import JetbotEnv, calibrated_robot
 from jetbot_rt.train.evaluate import load_policy
 
 
@@ -69,6 +69,10 @@ def open_replay(task: str, doc: str) -> Replay:
     args = parser.parse_args()
     report, seeds, successes = read_evaluation(args.eval, args.episodes)
     config = load_config(args.config)
+    lift = config.randomize.deadband_lift if calibrated_robot(config, task) else None
+    if "deadband_lift" in report and report["deadband_lift"] != lift:
+        parser.error(f"{args.eval} ran with deadband_lift {report['deadband_lift']}, this "
+                     f"config gives {lift}: pass the --config the evaluation ran with")
     policy = load_policy(args.policy, config, ablate=report.get("ablate"))
     env = JetbotEnv(task, config, model_max_speed=policy.max_speed,
                     image_size=(policy.spec.width, policy.spec.height))

@@ -11,9 +11,12 @@ block pushed less than ``max_block_shift``):
 - "near the goal": ended within 0.4 m of the goal (stopped short or wandered near it);
 - "elsewhere": anywhere else (lost, circling, out of the area).
 
-Each line also gives the policy's mean command (left, right) over the episode.
+Each line also gives the policy's mean command (left, right) over the episode, its last
+command, the episode's drawn dead-band and the lift the robot applied (``[actions] deadband``,
+drawn on a calibrated robot), where there is one: a robot stopped short of the goal while
+commanding a crawl below its unlifted dead-band stalled, it did not choose to stop.
 
-    python benchmarks/seek_misses.py --policy P.onnx --eval heldout.json [--episodes N]
+    python benchmarks/seek_misses.py --policy P.onnx --eval heldout.json [--episodes N] [--config C]
 
 Prints one line a miss and the counts; the replay uses the evaluation's environment, so a
 miss that does not fail again is printed as "passed now".
@@ -58,8 +61,8 @@ def sort(env, info: dict, episode: Episode) -> tuple[str, str]:
     left, right = episode.mean_command
     last_left, last_right = episode.last_command
     drawn = env.unwrapped.sim_params
-    lift = (f", lift {drawn['deadband_lift']:.2f}" if drawn.get("deadband_lift") is not None
-            else "")
+    lifted = env.unwrapped.pipeline.deadband
+    lift = f", lift {lifted:.2f}" if lifted > 0 else ""
     return (kind(info, env.unwrapped.task, distractor, episode.farthest),
             f"goal {info['distance']:.2f} m, nearest distractor {distractor:.2f} m, at most "
             f"{episode.farthest:.2f} m from the start, speed {info['speed']:.3f} m/s, mean "

@@ -1,9 +1,11 @@
 #!/bin/bash
 # issue 21 target 3: seek PPO from pixels for 15 min in two segments (a call lasts <= 10 min),
-# on a calibrated robot (benchmarks/training/lift.toml; the only change from s7_ppo.sh):
+# on a calibrated robot (benchmarks/training/lift.toml; the only change from
+# ../ppo_15min_h100/run.sh):
 # --critic state --target-kl 0.02 --augment 0.1, 16 envs, --overlap --balance, lr annealed to 0
-# over 2.4 M steps (~15 min at ~2700 env steps/s). Segment 1: 500 s. Segment 2: --resume for
-# 400 s, then 100 held-out episodes, the same blank, constant forward, 100 randomized.
+# over 2.4 M steps (~15 min at ~2700 env steps/s). Segment 1: 500 s. Segment 2: --resume for at
+# most 400 s (it ended by itself at 353 s), then 100 held-out episodes, the same blank,
+# constant forward, 100 randomized, all calibrated, and the held-out ones not calibrated.
 SEG=$1
 source .devscripts/setup.sh
 nproc; date -u; uptime; python3 -c "import torch; print(torch.__version__, torch.cuda.is_available())"
